@@ -1,0 +1,161 @@
+"""Every detector parameter in one frozen object that loads from and dumps to TOML."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import sys
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Literal, get_args
+
+import tomli_w
+
+from ..errors import ParameterError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+Method = Literal["doseqslam", "seqslam"]
+Association = Literal["greedy", "trajectory"]
+FeatureDetector = Literal["auto", "surf", "orb", "sift", "akaze", "brisk", "klt"]
+
+_CHOICES: dict[str, tuple[str, ...]] = {
+    "method": get_args(Method),
+    "association": get_args(Association),
+    "feature_detector": get_args(FeatureDetector),
+}
+
+
+@dataclass(frozen=True)
+class Parameters:
+    """Detector parameters; defaults are the paper's Table II where it has one.
+
+    Names follow the paper: `kappa_s` is its time constant kappa (seconds of timestamp),
+    `enhancement_window` its epsilon, `threshold` its th (theta for SeqSLAM).
+    """
+
+    method: Method = "doseqslam"
+    # Preprocessing (paper Table II: 64 x 32 pixels, chi = 2048, N = 8).
+    image_width: int = 64
+    image_height: int = 32
+    patch_size: int = 8
+    # Contrast enhancement window epsilon (samples j-5 .. j+5).
+    enhancement_window: int = 10
+    # Time constant kappa: database frames are at least this many seconds older than the query.
+    kappa_s: float = 40.0
+    # Trajectory velocities 0.7 .. 1.3 in steps of 0.1 (the paper's "step 1" read as 0.1).
+    velocity_min: float = 0.7
+    velocity_max: float = 1.3
+    velocity_step: float = 0.1
+    # Decision: loop closure when f < threshold.
+    threshold: float = 0.75
+    # Image-to-image association inside an accepted sequence.
+    association: Association = "trajectory"
+    # Segmentation (paper III-B): a sequence ends when at most one common feature survives.
+    feature_detector: FeatureDetector = "auto"
+    max_features: int = 500
+    feature_image_max_side: int = 320  # frames are shrunk to this before feature detection
+    match_ratio: float = 0.8  # Lowe ratio test for descriptor matching
+    min_features: int = 10  # a frame with fewer features joins the current sequence
+    max_sequence_length: int = 300  # frames; 0 turns the cap off
+    # SeqSLAM baseline: fixed sequence length ds.
+    seqslam_length: int = 10
+
+    def __post_init__(self) -> None:
+        for name, allowed in _CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ParameterError(
+                    f"{name} must be one of {', '.join(allowed)}, not {getattr(self, name)!r}"
+                )
+        positive = ("image_width", "image_height", "patch_size", "max_features",
+                    "feature_image_max_side", "seqslam_length")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ParameterError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.image_width % self.patch_size or self.image_height % self.patch_size:
+            raise ParameterError("image_width and image_height must be multiples of patch_size")
+        if self.enhancement_window < 2 or self.enhancement_window % 2:
+            raise ParameterError("enhancement_window must be an even number >= 2")
+        if self.kappa_s < 0:
+            raise ParameterError("kappa_s must be >= 0")
+        if not 0 < self.velocity_min <= 1.0 <= self.velocity_max or self.velocity_step <= 0:
+            raise ParameterError("velocities need 0 < velocity_min <= 1 <= velocity_max, step > 0")
+        if not 0 < self.match_ratio <= 1:
+            raise ParameterError("match_ratio must be in (0, 1]")
+        if self.min_features < 0 or self.max_sequence_length < 0:
+            raise ParameterError("min_features and max_sequence_length must be >= 0")
+
+    @property
+    def velocities(self) -> tuple[float, ...]:
+        """The velocity grid, always including 1.0, rounded to clean decimals."""
+        count = int(round((self.velocity_max - self.velocity_min) / self.velocity_step)) + 1
+        grid = {round(self.velocity_min + i * self.velocity_step, 6) for i in range(count)}
+        grid.add(1.0)
+        return tuple(sorted(v for v in grid if v <= self.velocity_max + 1e-9))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> Parameters:
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ParameterError(f"unknown parameter(s): {', '.join(unknown)}")
+        converted: dict[str, Any] = {}
+        for name, value in values.items():
+            default = known[name].default
+            if isinstance(default, bool) or isinstance(value, bool):
+                ok = isinstance(value, type(default))
+            elif isinstance(default, float):
+                ok = isinstance(value, (int, float))
+                value = float(value)
+            else:
+                ok = isinstance(value, type(default))
+            if not ok:
+                raise ParameterError(
+                    f"parameter {name} must be {type(default).__name__}, got {value!r}"
+                )
+            converted[name] = value
+        return cls(**converted)
+
+    def replace(self, **changes: Any) -> Parameters:
+        return self.from_dict({**self.to_dict(), **changes})
+
+    def to_toml(self) -> str:
+        return tomli_w.dumps(self.to_dict())
+
+    @classmethod
+    def from_toml(cls, text: str) -> Parameters:
+        try:
+            values = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ParameterError(f"invalid TOML: {exc}") from None
+        return cls.from_dict(values)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Parameters:
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ParameterError(f"{path}: cannot read parameters: {exc.strerror}") from None
+        try:
+            return cls.from_toml(text)
+        except ParameterError as exc:
+            raise ParameterError(f"{path}: {exc}") from None
+
+    def canonical_json(self) -> str:
+        """Sorted keys, floats by their shortest repr: the same text on every machine."""
+        return json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+
+    @property
+    def hash(self) -> str:
+        """A stable 16-hex-digit fingerprint of every parameter."""
+        return hashlib.sha256(self.canonical_json().encode()).hexdigest()[:16]
+
+
+DEFAULT_PARAMETERS = Parameters()

@@ -1,0 +1,62 @@
+"""Error classes of each layer and the documented exit codes of the command line."""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class ExitCode(IntEnum):
+    """Process exit codes; documented in README.md and docs/robustness.md."""
+
+    OK = 0
+    DIFFERENT = 1  # `diff`: the two logs differ; `batch`: some log failed
+    USAGE = 2  # bad arguments, unreadable config, unknown option value
+    UNREADABLE_INPUT = 3  # the input is missing, not a log, or corrupt beyond use
+    NO_CAMERA = 4  # the log holds no usable camera channel (or the topic asked for is absent)
+    BAD_IMAGE = 5  # an image could not be decoded and --on-error fail was asked for
+    OUTPUT_ERROR = 6  # the output could not be written
+    INTERRUPTED = 130
+
+
+class DoseqslamError(Exception):
+    """Base of every error this package raises on purpose; carries its exit code."""
+
+    exit_code: ExitCode = ExitCode.USAGE
+
+
+class UsageError(DoseqslamError):
+    """Bad arguments or parameters."""
+
+    exit_code = ExitCode.USAGE
+
+
+class ParameterError(UsageError):
+    """A parameters file or value is invalid."""
+
+
+class SourceError(DoseqslamError):
+    """A log could not be opened or read."""
+
+    exit_code = ExitCode.UNREADABLE_INPUT
+
+
+class NoCameraError(SourceError):
+    """The log has no camera channel, or not the one asked for."""
+
+    exit_code = ExitCode.NO_CAMERA
+
+
+class ImageDecodeError(DoseqslamError):
+    """One image message could not be turned into pixels."""
+
+    exit_code = ExitCode.BAD_IMAGE
+
+
+class GroundTruthError(UsageError):
+    """A ground-truth file could not be read or does not fit the frames."""
+
+
+class OutputError(DoseqslamError):
+    """The output could not be written."""
+
+    exit_code = ExitCode.OUTPUT_ERROR

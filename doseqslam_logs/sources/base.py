@@ -1,0 +1,66 @@
+"""What every log source provides: channel listings and image messages in timestamp order."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Protocol
+
+ImageKind = Literal["raw", "compressed"]
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """One topic of a log, as `info` lists it."""
+
+    topic: str
+    message_type: str  # e.g. "sensor_msgs/msg/Image", "foxglove.CompressedImage"
+    message_encoding: str  # "cdr", "ros1", "protobuf", "json"
+    message_count: int
+    first_log_time_ns: int | None = None
+    last_log_time_ns: int | None = None
+    is_image: bool = False
+
+
+@dataclass(frozen=True)
+class ImageMessage:
+    """One camera message, still encoded; `sources.images.decode_gray` turns it into pixels.
+
+    Decoding is kept apart from reading so that it can run in a worker pool.
+    """
+
+    topic: str
+    log_time_ns: int
+    header_stamp_ns: int | None  # None when the message type has no header stamp
+    kind: ImageKind
+    encoding: str  # raw: the ROS encoding ("mono8", "rgb8", ...); compressed: the format string
+    width: int  # raw only (0 for compressed)
+    height: int  # raw only (0 for compressed)
+    step: int  # raw only: bytes per row including padding (0 for compressed)
+    is_bigendian: bool
+    data: bytes
+    publish_time_ns: int | None = None
+    sequence: int | None = None
+
+
+class Source(Protocol):
+    """A readable log. Sources are context managers; the input file is opened read-only."""
+
+    path: Path
+
+    def channels(self) -> list[ChannelInfo]:
+        """Every channel of the log, image or not."""
+        ...
+
+    def image_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[ImageMessage]:
+        """The messages of one image topic in log-time order, within [start_ns, end_ns)."""
+        ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Source: ...
+
+    def __exit__(self, *exc: object) -> None: ...
