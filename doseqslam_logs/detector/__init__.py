@@ -1,0 +1,50 @@
+"""The detector core: pure computation over frames (no file I/O), with an online `push` API."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from .doseqslam import DOSeqSLAM
+from .events import Candidate, SequenceDecision
+from .params import Parameters
+from .seqslam import SeqSLAM
+
+__all__ = [
+    "Candidate",
+    "DOSeqSLAM",
+    "Detector",
+    "Parameters",
+    "SeqSLAM",
+    "SequenceDecision",
+    "make_detector",
+]
+
+
+class Detector(Protocol):
+    """What the replay pipeline drives: frames in, decisions out."""
+
+    method: str
+    params: Parameters
+
+    @property
+    def feature_detector(self) -> str: ...
+
+    @property
+    def frame_count(self) -> int: ...
+
+    @property
+    def memory_bytes(self) -> int: ...
+
+    def push(self, timestamp_ns: int, gray: npt.NDArray[np.uint8]) -> list[SequenceDecision]: ...
+
+    def finish(self) -> list[SequenceDecision]: ...
+
+
+def make_detector(params: Parameters) -> Detector:
+    """The detector `params.method` names."""
+    if params.method == "seqslam":
+        return SeqSLAM(params)
+    return DOSeqSLAM(params)

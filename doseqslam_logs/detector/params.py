@@ -71,8 +71,14 @@ class Parameters:
                 raise ParameterError(
                     f"{name} must be one of {', '.join(allowed)}, not {getattr(self, name)!r}"
                 )
-        positive = ("image_width", "image_height", "patch_size", "max_features",
-                    "feature_image_max_side", "seqslam_length")
+        positive = (
+            "image_width",
+            "image_height",
+            "patch_size",
+            "max_features",
+            "feature_image_max_side",
+            "seqslam_length",
+        )
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ParameterError(f"{name} must be positive, got {getattr(self, name)}")
@@ -92,7 +98,7 @@ class Parameters:
     @property
     def velocities(self) -> tuple[float, ...]:
         """The velocity grid, always including 1.0, rounded to clean decimals."""
-        count = int(round((self.velocity_max - self.velocity_min) / self.velocity_step)) + 1
+        count = round((self.velocity_max - self.velocity_min) / self.velocity_step) + 1
         grid = {round(self.velocity_min + i * self.velocity_step, 6) for i in range(count)}
         grid.add(1.0)
         return tuple(sorted(v for v in grid if v <= self.velocity_max + 1e-9))

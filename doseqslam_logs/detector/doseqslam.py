@@ -1,0 +1,235 @@
+"""The online DOSeqSLAM detector (Tsintotas et al., 2018), as ../shared/spec/algorithm.md reads it.
+
+Frames arrive one at a time. Sequence S_k is queried once S_{k+1} is complete (the exclusion
+window needs its length), and decided once gamma_{k+1} exists (the weighted decision, eq. 8).
+Only the last few sequences are held; frame vectors are the only per-frame state.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from bisect import bisect_right
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from .association import greedy_matches, pair_differences, trajectory_matches
+from .difference import FrameStore, sad_rows
+from .enhance import enhance
+from .events import Candidate, SequenceDecision
+from .params import Parameters
+from .preprocess import frame_vector
+from .segmentation import make_segmenter
+from .trajectory import normalize, trajectory_scores
+
+GrayImage = npt.NDArray[np.uint8]
+
+# Weights of gamma_{k-1}, gamma_k, gamma_{k+1} in the decision (paper eq. 8).
+DECISION_WEIGHTS = (1.0, 4.0, 1.0)
+# The exclusion window spans this many lengths of the neighbouring sequences (paper eq. 7).
+WINDOW_LENGTHS = 2
+
+
+@dataclass(frozen=True)
+class QueryResult:
+    """What querying one sequence against its database gave."""
+
+    database_size: int
+    gamma: float
+    best_start: int | None = None
+    best_velocity: float | None = None
+    best_score: float | None = None
+    second_score: float | None = None
+    candidates: tuple[Candidate, ...] = ()
+
+
+@dataclass
+class _Sequence:
+    sequence_id: int
+    first: int
+    last: int
+    result: QueryResult | None = None
+    decided: bool = False
+
+    @property
+    def length(self) -> int:
+        return self.last - self.first + 1
+
+
+def weighted_decision(previous: float | None, gamma: float, following: float | None) -> float:
+    """f = (gamma_{k-1} + 4 gamma_k + gamma_{k+1}) / 6, renormalized over the gammas that exist."""
+    terms = [
+        (w, g)
+        for w, g in zip(DECISION_WEIGHTS, (previous, gamma, following), strict=False)
+        if g is not None
+    ]
+    return sum(w * g for w, g in terms) / sum(w for w, _ in terms)
+
+
+class DOSeqSLAM:
+    """Online DOSeqSLAM: `push` frames in timestamp order, then `finish`."""
+
+    method = "doseqslam"
+
+    def __init__(self, params: Parameters | None = None) -> None:
+        self.params = params or Parameters()
+        self._store = FrameStore(self.params.image_width * self.params.image_height)
+        self._timestamps = array("q")
+        self._segmenter = make_segmenter(self.params)
+        self._kappa_ns = round(self.params.kappa_s * 1e9)
+        self._open_first: int | None = None
+        self._sequences: list[_Sequence] = []
+        self._next_id = 0
+        self._finished = False
+
+    @property
+    def feature_detector(self) -> str:
+        """The segmentation detector in use ("auto" resolved)."""
+        return self._segmenter.name
+
+    @property
+    def frame_count(self) -> int:
+        return len(self._timestamps)
+
+    @property
+    def memory_bytes(self) -> int:
+        """Bytes held for frame vectors and timestamps (the part that grows with the log)."""
+        return self._store.nbytes + self._timestamps.itemsize * len(self._timestamps)
+
+    def push(self, timestamp_ns: int, gray: GrayImage) -> list[SequenceDecision]:
+        """Add the next frame; returns the decisions this frame made possible.
+
+        Raises ValueError for a timestamp earlier than the previous one or after `finish`.
+        """
+        if self._finished:
+            raise ValueError("push after finish")
+        if self._timestamps and timestamp_ns < self._timestamps[-1]:
+            raise ValueError(
+                f"timestamps must not decrease: {timestamp_ns} after {self._timestamps[-1]}"
+            )
+        p = self.params
+        index = self._store.append(frame_vector(gray, p.image_width, p.image_height, p.patch_size))
+        self._timestamps.append(timestamp_ns)
+        if self._open_first is not None and self._reached_cap(index):
+            self._segmenter.restart(gray)
+            starts = True
+        else:
+            starts = self._segmenter.starts_sequence(gray)
+        if not starts and self._open_first is not None:
+            return []
+        if self._open_first is not None:
+            self._close_sequence(index - 1)
+        self._open_first = index
+        return self._advance(final=False)
+
+    def finish(self) -> list[SequenceDecision]:
+        """End of stream: close the open sequence and decide every sequence left."""
+        if self._finished:
+            return []
+        self._finished = True
+        if self._open_first is not None:
+            self._close_sequence(len(self._timestamps) - 1)
+            self._open_first = None
+        return self._advance(final=True)
+
+    def _reached_cap(self, index: int) -> bool:
+        cap = self.params.max_sequence_length
+        return cap > 0 and self._open_first is not None and index - self._open_first >= cap
+
+    def _close_sequence(self, last: int) -> None:
+        assert self._open_first is not None
+        self._sequences.append(_Sequence(self._next_id, self._open_first, last))
+        self._next_id += 1
+
+    def _advance(self, final: bool) -> list[SequenceDecision]:
+        """Query every sequence whose successor is complete, decide every sequence whose
+        successor has been queried, and forget all but the last decided one."""
+        seqs = self._sequences
+        for k, seq in enumerate(seqs):
+            if seq.result is None and (k + 1 < len(seqs) or final):
+                before = seqs[k - 1].length if k > 0 else 0
+                after = seqs[k + 1].length if k + 1 < len(seqs) else 0
+                seq.result = self._query(seq, before, after)
+        decisions = []
+        for k, seq in enumerate(seqs):
+            if seq.decided or seq.result is None:
+                continue
+            following = seqs[k + 1].result if k + 1 < len(seqs) else None
+            if following is None and not final:
+                break
+            previous = seqs[k - 1].result if k > 0 else None
+            decisions.append(self._decide(seq, previous, following))
+        last_decided = max((k for k, s in enumerate(seqs) if s.decided), default=-1)
+        del seqs[: max(last_decided, 0)]
+        return decisions
+
+    def _database_size(self, first: int) -> int:
+        """Frames at least kappa seconds older than frame `first` (a prefix of the stream)."""
+        return bisect_right(self._timestamps, self._timestamps[first] - self._kappa_ns)
+
+    def _query(self, seq: _Sequence, before: int, after: int) -> QueryResult:
+        database = min(self._database_size(seq.first), seq.first)
+        if database == 0:
+            return QueryResult(database_size=0, gamma=1.0)
+        rows = sad_rows(self._store.rows(seq.first, seq.last), self._store, database)
+        enhanced = enhance(rows, self.params.enhancement_window)
+        scores = trajectory_scores(enhanced, self.params.velocities)
+        norm = normalize(scores.scores, WINDOW_LENGTHS * before, WINDOW_LENGTHS * after)
+        if norm is None:  # the database is shorter than any trajectory of this sequence
+            return QueryResult(database_size=database, gamma=1.0)
+        if self.params.association == "greedy":
+            matches = greedy_matches(enhanced, norm.best_start, self.params.velocity_max)
+        else:
+            matches = trajectory_matches(scores, norm.best_start)
+        differences = pair_differences(enhanced, matches)
+        candidates = tuple(
+            Candidate(
+                query_index=seq.first + z,
+                match_index=int(m),
+                query_timestamp_ns=self._timestamps[seq.first + z],
+                match_timestamp_ns=self._timestamps[int(m)],
+                difference=float(d),
+            )
+            for z, (m, d) in enumerate(zip(matches, differences, strict=False))
+        )
+        return QueryResult(
+            database_size=database,
+            gamma=norm.gamma,
+            best_start=norm.best_start,
+            best_velocity=scores.best_velocity(norm.best_start),
+            best_score=norm.best_score,
+            second_score=norm.second_score,
+            candidates=candidates,
+        )
+
+    def _decide(
+        self, seq: _Sequence, previous: QueryResult | None, following: QueryResult | None
+    ) -> SequenceDecision:
+        result = seq.result
+        assert result is not None
+        g_prev = previous.gamma if previous else None
+        g_next = following.gamma if following else None
+        f = weighted_decision(g_prev, result.gamma, g_next)
+        seq.decided = True
+        return SequenceDecision(
+            sequence_id=seq.sequence_id,
+            first_index=seq.first,
+            last_index=seq.last,
+            first_timestamp_ns=self._timestamps[seq.first],
+            last_timestamp_ns=self._timestamps[seq.last],
+            database_size=result.database_size,
+            best_start=result.best_start,
+            best_velocity=result.best_velocity,
+            best_score=result.best_score,
+            second_score=result.second_score,
+            gamma=result.gamma,
+            gamma_previous=g_prev,
+            gamma_next=g_next,
+            f=f,
+            threshold=self.params.threshold,
+            accepted=bool(result.candidates) and f < self.params.threshold and math.isfinite(f),
+            candidates=result.candidates,
+            method=self.method,
+        )

@@ -1,0 +1,219 @@
+"""Dynamic sequence segmentation (paper III-B, eq. 5) by a running common set of local features.
+
+A sequence starts with its first frame's features as the common set C. Each next frame is
+matched against C, and C keeps only the features that found a match, with their own
+descriptors: C is the intersection of the sequence's frames with its first frame. When at most
+one feature survives, the sequence ends and the frame starts a new one. The KLT variant (the
+authors' later code) tracks points instead and ends a sequence when none survives.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from .params import Parameters
+
+GrayImage = npt.NDArray[np.uint8]
+
+# The order in which "auto" tries detectors: SURF when the installed OpenCV has the non-free
+# module (the paper's choice), else the free detector chosen by measurement (docs/results.md).
+AUTO_ORDER = ("surf", "orb")
+
+
+class Segmenter(Protocol):
+    """Decides, frame by frame, where sequences start."""
+
+    name: str
+
+    def starts_sequence(self, gray: GrayImage) -> bool:
+        """Feed the next frame; True when it starts a new sequence (the first frame does)."""
+        ...
+
+    def restart(self, gray: GrayImage) -> None:
+        """Start a new sequence at this frame regardless of its features (the length cap)."""
+        ...
+
+
+def shrink(gray: GrayImage, max_side: int) -> GrayImage:
+    """Shrink so the longer side is at most max_side: features cost time in pixels."""
+    scale = max_side / max(gray.shape)
+    if scale >= 1.0:
+        return gray
+    size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
+    return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+
+
+def _create(name: str, max_features: int) -> tuple[Any, int]:
+    """An OpenCV feature object and the norm its descriptors are compared with.
+
+    Raises ValueError when the installed OpenCV lacks it (SURF is absent from PyPI builds).
+    """
+    xf = getattr(cv2, "xfeatures2d", None)
+
+    def find(attr: str) -> Any:
+        factory = getattr(cv2, attr, None) or getattr(xf, attr, None)
+        if factory is None:
+            raise ValueError(f"this OpenCV build has no {attr}")
+        return factory
+
+    try:
+        if name == "orb":
+            return find("ORB_create")(nfeatures=max_features), cv2.NORM_HAMMING
+        if name == "sift":
+            return find("SIFT_create")(nfeatures=max_features), cv2.NORM_L2
+        if name == "surf":
+            return find("SURF_create")(hessianThreshold=400), cv2.NORM_L2
+        if name == "akaze":
+            return find("AKAZE_create")(), cv2.NORM_HAMMING
+        if name == "brisk":
+            return find("BRISK_create")(), cv2.NORM_HAMMING
+    except cv2.error as exc:  # non-free algorithm disabled in this build
+        raise ValueError(f"{name} is not available in this OpenCV build: {exc.err}") from None
+    raise ValueError(f"unknown feature detector {name!r}")
+
+
+def resolve_detector_name(requested: str) -> str:
+    """The detector "auto" stands for on this installation; other names are returned as is."""
+    if requested != "auto":
+        return requested
+    for name in AUTO_ORDER:
+        try:
+            _create(name, 10)
+        except ValueError:
+            continue
+        return name
+    raise ValueError("no feature detector available")  # pragma: no cover - ORB is always there
+
+
+@dataclass
+class _Features:
+    descriptors: npt.NDArray[Any] | None
+
+    @property
+    def count(self) -> int:
+        return 0 if self.descriptors is None else len(self.descriptors)
+
+
+class DescriptorSegmenter:
+    """Running common set of descriptors, matched with a ratio test (paper eq. 5)."""
+
+    def __init__(self, params: Parameters, name: str) -> None:
+        self.name = name
+        self._detector, norm = _create(name, params.max_features)
+        self._matcher = cv2.BFMatcher(norm)
+        self._max_features = params.max_features
+        self._max_side = params.feature_image_max_side
+        self._ratio = params.match_ratio
+        self._min_features = params.min_features
+        self._common: _Features | None = None
+
+    def _detect(self, gray: GrayImage) -> _Features:
+        keypoints, descriptors = self._detector.detectAndCompute(shrink(gray, self._max_side), None)
+        if descriptors is None or len(keypoints) == 0:
+            return _Features(None)
+        if len(keypoints) > self._max_features:  # AKAZE/BRISK have no feature budget
+            order = np.argsort([-k.response for k in keypoints], kind="stable")
+            descriptors = descriptors[order[: self._max_features]]
+        return _Features(descriptors)
+
+    def _surviving(self, current: _Features) -> _Features:
+        """The common features that found a match in `current` (their own descriptors, so C is
+        the intersection with the sequence's first frame and cannot drift along the route)."""
+        assert self._common is not None and self._common.descriptors is not None
+        assert current.descriptors is not None
+        if len(current.descriptors) < 2:
+            return _Features(None)
+        pairs = self._matcher.knnMatch(self._common.descriptors, current.descriptors, k=2)
+        kept: dict[int, int] = {}  # train index -> common index: one match per new feature
+        for pair in pairs:
+            if len(pair) == 2 and pair[0].distance < self._ratio * pair[1].distance:
+                kept.setdefault(pair[0].trainIdx, pair[0].queryIdx)
+        rows = sorted(kept.values())
+        return _Features(self._common.descriptors[rows] if rows else None)
+
+    def starts_sequence(self, gray: GrayImage) -> bool:
+        current = self._detect(gray)
+        if self._common is None:
+            self._common = current
+            return True
+        if current.count < self._min_features:
+            return False  # dark or blurred frame: joins the current sequence
+        if self._common.count < self._min_features:
+            self._common = current  # the sequence began featureless: seed it now
+            return False
+        surviving = self._surviving(current)
+        if surviving.count <= 1:
+            self._common = current
+            return True
+        self._common = surviving
+        return False
+
+    def restart(self, gray: GrayImage) -> None:
+        self._common = self._detect(gray)
+
+
+class KltSegmenter:
+    """Points tracked with pyramidal Lucas-Kanade (forward-backward checked); a sequence ends
+    when no point survives (the authors' Tracking-DOSeqSLAM)."""
+
+    name = "klt"
+    FB_MAX_ERROR = 1.0  # pixels: forward-backward disagreement beyond this drops a point
+
+    def __init__(self, params: Parameters) -> None:
+        self._max_features = params.max_features
+        self._max_side = params.feature_image_max_side
+        self._min_features = params.min_features
+        self._previous: GrayImage | None = None
+        self._points: npt.NDArray[np.float32] | None = None
+
+    def _seed(self, small: GrayImage) -> None:
+        corners = cv2.goodFeaturesToTrack(small, self._max_features, 0.01, 7)
+        self._points = None if corners is None else corners.astype(np.float32)
+        self._previous = small
+
+    def _track(self, small: GrayImage) -> npt.NDArray[np.float32] | None:
+        assert self._previous is not None and self._points is not None
+        points = self._points
+        # nextPts is only an initial guess when OPTFLOW_USE_INITIAL_FLOW is set; it is not here.
+        forward, st1, _ = cv2.calcOpticalFlowPyrLK(
+            self._previous, small, points, points.copy(), winSize=(21, 21), maxLevel=3
+        )
+        forward = np.asarray(forward, dtype=np.float32)
+        backward, st2, _ = cv2.calcOpticalFlowPyrLK(
+            small, self._previous, forward, forward.copy(), winSize=(21, 21), maxLevel=3
+        )
+        error = np.linalg.norm((np.asarray(backward) - points).reshape(-1, 2), axis=1)
+        good = (np.asarray(st1).ravel() == 1) & (np.asarray(st2).ravel() == 1)
+        good &= error < self.FB_MAX_ERROR
+        return forward[good] if good.any() else None
+
+    def starts_sequence(self, gray: GrayImage) -> bool:
+        small = shrink(gray, self._max_side)
+        if self._previous is None or self._previous.shape != small.shape:
+            self._seed(small)  # first frame, or the resolution changed: nothing to track
+            return True
+        if self._points is None or len(self._points) < self._min_features:
+            self._seed(small)  # the sequence began featureless: seed it now
+            return False
+        tracked = self._track(small)
+        if tracked is None:
+            self._seed(small)
+            return True
+        self._points, self._previous = tracked, small
+        return False
+
+    def restart(self, gray: GrayImage) -> None:
+        self._seed(shrink(gray, self._max_side))
+
+
+def make_segmenter(params: Parameters) -> Segmenter:
+    """The segmenter the parameters ask for ("auto" resolves as `resolve_detector_name`)."""
+    name = resolve_detector_name(params.feature_detector)
+    if name == "klt":
+        return KltSegmenter(params)
+    return DescriptorSegmenter(params, name)
