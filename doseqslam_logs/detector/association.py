@@ -23,7 +23,8 @@ def greedy_matches(enhanced: FloatArray, best_start: int, velocity_max: float) -
     length, database = enhanced.shape
     stop = min(best_start + int(np.floor(velocity_max * length + 0.5)), database - 1) + 1
     window = enhanced[:, best_start:stop]
-    return best_start + np.argmin(window, axis=1).astype(np.int64)
+    matches: IntArray = best_start + np.argmin(window, axis=1).astype(np.int64)
+    return matches
 
 
 def pair_differences(enhanced: FloatArray, matches: IntArray) -> FloatArray:

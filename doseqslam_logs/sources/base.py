@@ -42,6 +42,10 @@ class ImageMessage:
     data: bytes
     publish_time_ns: int | None = None
     sequence: int | None = None
+    # Set when the message itself could not be deserialized. The source still yields it (a
+    # generator that raised could not go on) and `decode_gray` raises ImageDecodeError with it,
+    # so `--on-error skip` can skip one corrupt message and keep reading.
+    decode_error: str | None = None
 
 
 class Source(Protocol):
