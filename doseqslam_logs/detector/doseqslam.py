@@ -21,7 +21,7 @@ from .enhance import enhance
 from .events import Candidate, SequenceDecision
 from .params import Parameters
 from .preprocess import frame_vector
-from .segmentation import make_segmenter
+from .segmentation import Segmenter, make_segmenter
 from .trajectory import normalize, trajectory_scores
 
 GrayImage = npt.NDArray[np.uint8]
@@ -73,11 +73,14 @@ class DOSeqSLAM:
 
     method = "doseqslam"
 
-    def __init__(self, params: Parameters | None = None) -> None:
+    def __init__(
+        self, params: Parameters | None = None, segmenter: Segmenter | None = None
+    ) -> None:
+        """`segmenter` replaces the one the parameters name (tests fix sequence boundaries)."""
         self.params = params or Parameters()
         self._store = FrameStore(self.params.image_width * self.params.image_height)
         self._timestamps = array("q")
-        self._segmenter = make_segmenter(self.params)
+        self._segmenter = segmenter or make_segmenter(self.params)
         self._kappa_ns = round(self.params.kappa_s * 1e9)
         self._open_first: int | None = None
         self._sequences: list[_Sequence] = []

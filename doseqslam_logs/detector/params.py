@@ -119,7 +119,7 @@ class Parameters:
                 ok = isinstance(value, type(default))
             elif isinstance(default, float):
                 ok = isinstance(value, (int, float))
-                value = float(value)
+                value = float(value) if ok else value
             else:
                 ok = isinstance(value, type(default))
             if not ok:
