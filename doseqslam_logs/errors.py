@@ -15,6 +15,7 @@ class ExitCode(IntEnum):
     NO_CAMERA = 4  # the log holds no usable camera channel (or the topic asked for is absent)
     BAD_IMAGE = 5  # an image could not be decoded and --on-error fail was asked for
     OUTPUT_ERROR = 6  # the output could not be written
+    INTERNAL = 70  # a bug: please report it (run with --debug for the traceback)
     INTERRUPTED = 130
 
 

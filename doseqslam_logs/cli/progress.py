@@ -1,0 +1,40 @@
+"""A progress line on stderr when it is a terminal; silent otherwise (logs, CI, batch)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+
+class Progress:
+    """`Progress(total, label)(done)` redraws at most ten times a second."""
+
+    def __init__(self, total: int | None, label: str, stream: TextIO | None = None) -> None:
+        self.total = total
+        self.label = label
+        self.stream = stream or sys.stderr
+        self.enabled = self.stream.isatty()
+        self._start = time.perf_counter()
+        self._last_draw = 0.0
+
+    def __call__(self, done: int) -> None:
+        now = time.perf_counter()
+        if not self.enabled or (now - self._last_draw < 0.1 and done != self.total):
+            return
+        self._last_draw = now
+        rate = done / max(now - self._start, 1e-9)
+        if self.total:
+            width = 30
+            filled = int(width * min(done / self.total, 1.0))
+            bar = "#" * filled + "-" * (width - filled)
+            text = f"{self.label} [{bar}] {done}/{self.total} frames, {rate:.0f} frames/s"
+        else:
+            text = f"{self.label} {done} frames, {rate:.0f} frames/s"
+        self.stream.write("\r" + text)
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write("\n")
+            self.stream.flush()
