@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import importlib.resources
-from importlib.resources.abc import Traversable
+import sys
 from pathlib import Path
+
+if sys.version_info >= (3, 11):
+    from importlib.resources.abc import Traversable
+else:  # pragma: no cover - Python 3.10
+    from importlib.abc import Traversable
 
 
 def schema_dir() -> Traversable:
@@ -25,4 +30,5 @@ def read_schema(name: str) -> str:
     node = schema_dir()
     for part in name.split("/"):
         node = node / part
-    return node.read_text(encoding="utf-8")
+    text: str = node.read_text(encoding="utf-8")
+    return text

@@ -1,52 +1,74 @@
 """Frame vectors kept in fixed-size blocks, and SAD difference rows against them (paper eq. 1).
 
 Blocks are never reallocated, so memory grows linearly with the number of frames (no doubling
-overshoot), and a difference row is computed one block at a time.
+overshoot), and difference rows are computed one cache-sized slice of the database at a time.
+
+Vectors are stored as float32, or quantized to uint8 (`difference_precision = "uint8"`): a
+patch-normalized value z lies within +-sqrt(63) < 127/16 for 8x8 patches, so
+q = round(16 z) + 128 holds it without clipping, at a step of 1/16 standard deviation. The
+uint8 path uses OpenCV's saturating absdiff and an integer row sum: 4x less memory and about
+18x faster than float32 NumPy (tools/bench_detector.py measures both side by side).
 """
 
 from __future__ import annotations
 
+from typing import Literal
+
+import cv2
 import numpy as np
 import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float32]
+Precision = Literal["uint8", "float32"]
+
+QUANTIZATION_SCALE = 16.0
+QUANTIZATION_ZERO = 128
+# Database frames per slice of the uint8 kernel: slice and query tile (2 MB each) stay in cache.
+SLICE_FRAMES = 1024
+
+
+def quantize(vector: FloatArray) -> npt.NDArray[np.uint8]:
+    """round(16 z) + 128, clipped to 0..255 (no clipping happens for 8x8 patches)."""
+    q = np.rint(vector * QUANTIZATION_SCALE) + QUANTIZATION_ZERO
+    quantized: npt.NDArray[np.uint8] = np.clip(q, 0, 255).astype(np.uint8)
+    return quantized
 
 
 class FrameStore:
-    """Append-only storage of equal-length float32 frame vectors."""
+    """Append-only storage of equal-length frame vectors."""
 
-    def __init__(self, dimension: int, block_frames: int = 4096) -> None:
+    def __init__(
+        self, dimension: int, precision: Precision = "float32", block_frames: int = 4096
+    ) -> None:
         self.dimension = dimension
+        self.precision = precision
+        self.dtype = np.uint8 if precision == "uint8" else np.float32
         self.block_frames = block_frames
-        self._blocks: list[FloatArray] = []
+        self._blocks: list[npt.NDArray[np.generic]] = []
         self._count = 0
 
     def __len__(self) -> int:
         return self._count
 
     def append(self, vector: FloatArray) -> int:
-        """Store one vector; returns its index."""
+        """Store one vector (quantized if the store is uint8); returns its index."""
         offset = self._count % self.block_frames
         if offset == 0:
-            self._blocks.append(np.empty((self.block_frames, self.dimension), np.float32))
-        self._blocks[-1][offset] = vector
+            self._blocks.append(np.empty((self.block_frames, self.dimension), self.dtype))
+        self._blocks[-1][offset] = quantize(vector) if self.precision == "uint8" else vector
         self._count += 1
         return self._count - 1
 
-    def rows(self, first: int, last: int) -> FloatArray:
-        """Vectors first..last inclusive as one (n, dimension) array (a copy)."""
-        out = np.empty((last - first + 1, self.dimension), np.float32)
+    def rows(self, first: int, last: int) -> npt.NDArray[np.generic]:
+        """Stored vectors first..last inclusive as one (n, dimension) array (a copy)."""
+        out = np.empty((last - first + 1, self.dimension), self.dtype)
         for row, index in enumerate(range(first, last + 1)):
-            out[row] = self.vector(index)
+            block, offset = divmod(index, self.block_frames)
+            out[row] = self._blocks[block][offset]
         return out
 
-    def vector(self, index: int) -> FloatArray:
-        block, offset = divmod(index, self.block_frames)
-        vector: FloatArray = self._blocks[block][offset]
-        return vector
-
-    def blocks(self, count: int) -> list[FloatArray]:
-        """Views of the first `count` vectors, block by block."""
+    def blocks(self, count: int) -> list[npt.NDArray[np.generic]]:
+        """Views of the first `count` stored vectors, block by block."""
         views = []
         for start in range(0, count, self.block_frames):
             block = self._blocks[start // self.block_frames]
@@ -58,18 +80,40 @@ class FrameStore:
         return sum(b.nbytes for b in self._blocks)
 
 
-def sad_rows(queries: FloatArray, store: FrameStore, database_size: int) -> FloatArray:
+def sad_rows(queries: npt.NDArray[np.generic], store: FrameStore, database_size: int) -> FloatArray:
     """D[q, j] = mean |queries[q] - store[j]| for j < database_size (paper eq. 1).
 
-    Returns a (len(queries), database_size) float32 array. Each database block is read once
-    for all query rows, which keeps it in cache while the rows are computed.
+    `queries` are stored vectors (`store.rows`). Returns a (len(queries), database_size)
+    float32 array in the units of the patch-normalized values.
     """
-    out = np.empty((len(queries), database_size), np.float32)
+    if store.precision == "uint8":
+        return _sad_rows_uint8(queries, store, database_size)
+    return _sad_rows_float32(queries, store, database_size)
+
+
+def _sad_rows_float32(queries: npt.NDArray[np.generic], store: FrameStore, n: int) -> FloatArray:
+    out = np.empty((len(queries), n), np.float32)
     scale = np.float32(1.0 / store.dimension)
     start = 0
-    for block in store.blocks(database_size):
+    for block in store.blocks(n):
         stop = start + len(block)
         for row, query in enumerate(queries):
             out[row, start:stop] = np.abs(block - query).sum(axis=1, dtype=np.float32) * scale
         start = stop
     return out
+
+
+def _sad_rows_uint8(queries: npt.NDArray[np.generic], store: FrameStore, n: int) -> FloatArray:
+    sums = np.empty((len(queries), n), np.int32)
+    for row, query in enumerate(queries):
+        tile = np.tile(query, (min(SLICE_FRAMES, n), 1))  # absdiff needs equal shapes
+        start = 0
+        for block in store.blocks(n):
+            for s in range(0, len(block), SLICE_FRAMES):
+                part = np.asarray(block[s : s + SLICE_FRAMES], dtype=np.uint8)
+                diff = cv2.absdiff(part, tile[: len(part)])
+                total = cv2.reduce(diff, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S)
+                sums[row, start + s : start + s + len(part)] = total.ravel()
+            start += len(block)
+    scale = 1.0 / (QUANTIZATION_SCALE * store.dimension)
+    return (sums * scale).astype(np.float32)

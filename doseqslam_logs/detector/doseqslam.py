@@ -78,7 +78,9 @@ class DOSeqSLAM:
     ) -> None:
         """`segmenter` replaces the one the parameters name (tests fix sequence boundaries)."""
         self.params = params or Parameters()
-        self._store = FrameStore(self.params.image_width * self.params.image_height)
+        self._store = FrameStore(
+            self.params.image_width * self.params.image_height, self.params.difference_precision
+        )
         self._timestamps = array("q")
         self._segmenter = segmenter or make_segmenter(self.params)
         self._kappa_ns = round(self.params.kappa_s * 1e9)

@@ -22,11 +22,13 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 Method = Literal["doseqslam", "seqslam"]
 Association = Literal["greedy", "trajectory"]
 FeatureDetector = Literal["auto", "surf", "orb", "sift", "akaze", "brisk", "klt"]
+Precision = Literal["uint8", "float32"]
 
 _CHOICES: dict[str, tuple[str, ...]] = {
     "method": get_args(Method),
     "association": get_args(Association),
     "feature_detector": get_args(FeatureDetector),
+    "difference_precision": get_args(Precision),
 }
 
 
@@ -43,6 +45,8 @@ class Parameters:
     image_width: int = 64
     image_height: int = 32
     patch_size: int = 8
+    # Frame vectors for the SAD rows: uint8-quantized (fast, 4x smaller) or float32.
+    difference_precision: Precision = "uint8"
     # Contrast enhancement window epsilon (samples j-5 .. j+5).
     enhancement_window: int = 10
     # Time constant kappa: database frames are at least this many seconds older than the query.

@@ -34,7 +34,9 @@ class SeqSLAM:
 
     def __init__(self, params: Parameters | None = None) -> None:
         self.params = params or Parameters(method="seqslam")
-        self._store = FrameStore(self.params.image_width * self.params.image_height)
+        self._store = FrameStore(
+            self.params.image_width * self.params.image_height, self.params.difference_precision
+        )
         self._timestamps = array("q")
         self._kappa_ns = round(self.params.kappa_s * 1e9)
         # Raw difference rows of the last ds frames, each against every frame old enough for

@@ -1,0 +1,392 @@
+"""MCAP files of any profile: ROS 2 (cdr), ROS 1 (ros1), Foxglove protobuf and Foxglove JSON.
+
+Indexed files (a summary with chunk indexes) are read chunk by chunk in log-time order, so a time
+range only touches the chunks that overlap it. Files without an index (written without chunks, or
+with the summary switched off) are streamed from the start; see `McapSource.image_messages` for how
+their order is restored. A file cut short (no footer) is streamed too, and raises SourceError when
+the reader reaches the cut: a truncated log is reported, not silently shortened.
+"""
+
+from __future__ import annotations
+
+import base64
+import heapq
+import inspect
+import json
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import IO, Any
+
+from mcap.exceptions import EndOfFile
+from mcap.reader import McapReader, NonSeekingReader, SeekingReader, make_reader
+from mcap.records import Channel, Message, MessageIndex, Schema
+from mcap.stream_reader import StreamReader
+from mcap.summary import Summary
+
+from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
+from doseqslam_logs.sources.base import ChannelInfo, ImageMessage
+from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
+
+Deserializer = Callable[[bytes], Any]
+_Record = tuple[Schema | None, Channel, Message]
+
+# How many image messages an unindexed file may hold back to restore log-time order. Out-of-order
+# writes come from several recorder threads and are displaced by a few messages at most; a window
+# of images (not bytes) keeps memory at a few dozen frames.
+REORDER_WINDOW = 64
+
+# mcap 1.6 renamed the time bounds (start_time/end_time still work but warn).
+_NEW_TIME_NAMES = "starting_at" in inspect.signature(SeekingReader.iter_messages).parameters
+
+
+# ---------------------------------------------------------------------------------------------
+# Deserializers, one per (message encoding, schema encoding)
+
+
+def _ros2msg(schema: Schema) -> Deserializer:
+    from mcap_ros2.decoder import DecoderFactory
+
+    decoder: Deserializer | None = DecoderFactory().decoder_for("cdr", schema)
+    if decoder is None:
+        raise ValueError("mcap_ros2 has no decoder for it")
+    return decoder
+
+
+def _idl_sections(text: str) -> list[str]:
+    """The IDL texts in a ros2idl schema: rosbag2 writes the type and each dependency as one
+    section, headed by a line of 80 '=' and a line 'IDL: pkg/msg/Type'."""
+    sections = []
+    for part in text.split("=" * 80 + "\n"):
+        body = part.partition("\n")[2] if part.startswith("IDL: ") else part
+        if body.strip():
+            sections.append(body)
+    return sections
+
+
+def _ros2idl(schema: Schema) -> Deserializer:
+    # mcap_ros2 only reads .msg schemas, so IDL schemas go through rosbags.
+    from rosbags.typesys import Stores, get_types_from_idl, get_typestore
+
+    types: dict[str, Any] = {}
+    for section in _idl_sections(schema.data.decode()):
+        types.update(get_types_from_idl(section))
+    store = get_typestore(Stores.EMPTY)
+    store.register(types)  # all at once: a section may use types from a later one
+    name = schema.name
+    return lambda payload: store.deserialize_cdr(payload, name)
+
+
+def _ros1msg(schema: Schema) -> Deserializer:
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    from rosbags.typesys.msg import normalize_msgtype
+
+    # One store per schema: ROS 1 and ROS 2 definitions of e.g. std_msgs/Header differ, and
+    # rosbags refuses to hold two definitions under one name.
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(schema.data.decode(), schema.name))
+    name = normalize_msgtype(schema.name)
+    return lambda payload: store.deserialize_ros1(payload, name)
+
+
+def _protobuf(schema: Schema) -> Deserializer:
+    from mcap_protobuf.decoder import DecoderFactory
+
+    decoder: Deserializer | None = DecoderFactory().decoder_for("protobuf", schema)
+    if decoder is None:
+        raise ValueError("mcap_protobuf has no decoder for it")
+    return decoder
+
+
+def _json_message(payload: bytes) -> SimpleNamespace:
+    """A Foxglove JSON message with the attribute names of the protobuf one: base64 `data`
+    becomes bytes and `timestamp` {sec, nsec} an object."""
+    fields = dict(json.loads(payload))
+    if isinstance(fields.get("data"), str):
+        fields["data"] = base64.b64decode(fields["data"], validate=True)
+    stamp = fields.get("timestamp")
+    fields["timestamp"] = SimpleNamespace(**stamp) if isinstance(stamp, dict) else None
+    return SimpleNamespace(**fields)
+
+
+def _json(schema: Schema) -> Deserializer:
+    return _json_message
+
+
+DESERIALIZERS: dict[tuple[str, str], Callable[[Schema], Deserializer]] = {
+    ("cdr", "ros2msg"): _ros2msg,
+    ("cdr", "ros2idl"): _ros2idl,
+    ("ros1", "ros1msg"): _ros1msg,
+    ("protobuf", "protobuf"): _protobuf,
+    ("json", "jsonschema"): _json,
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Channel statistics
+
+
+@dataclass
+class _ChannelStats:
+    channel: Channel
+    type_name: str
+    count: int = 0
+    first: int | None = None
+    last: int | None = None
+
+    def add_times(self, times: Iterable[int]) -> None:
+        for time in times:
+            self.count += 1
+            self.first = time if self.first is None else min(self.first, time)
+            self.last = time if self.last is None else max(self.last, time)
+
+
+def _type_name(schemas: dict[int, Schema], channel: Channel) -> str:
+    schema = schemas.get(channel.schema_id)
+    return schema.name if schema is not None else ""
+
+
+def _stats_from_index(file: IO[bytes], summary: Summary) -> list[_ChannelStats] | None:
+    """Counts and first/last times from the message index records, without reading any chunk;
+    None when the file has no message indexes."""
+    chunks = summary.chunk_indexes
+    if not chunks or any(not chunk.message_index_offsets for chunk in chunks):
+        return None
+    stats = {
+        cid: _ChannelStats(channel, _type_name(summary.schemas, channel))
+        for cid, channel in summary.channels.items()
+    }
+    for chunk in chunks:
+        for cid, offset in chunk.message_index_offsets.items():
+            file.seek(offset)
+            index = next(StreamReader(file, skip_magic=True).records)
+            if not isinstance(index, MessageIndex) or cid not in stats:
+                return None
+            stats[cid].add_times(time for time, _ in index.records)
+    if summary.statistics is not None:
+        for cid, entry in stats.items():
+            entry.count = summary.statistics.channel_message_counts.get(cid, 0)
+    return list(stats.values())
+
+
+def _stats_from_stream(file: IO[bytes]) -> list[_ChannelStats]:
+    """Counts and first/last times by one pass over every record (chunks are decompressed one
+    at a time, so memory stays at one chunk)."""
+    file.seek(0)
+    schemas: dict[int, Schema] = {}
+    stats: dict[int, _ChannelStats] = {}
+    for record in StreamReader(file).records:
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel) and record.id not in stats:
+            stats[record.id] = _ChannelStats(record, _type_name(schemas, record))
+        elif isinstance(record, Message):
+            stats[record.channel_id].add_times((record.log_time,))
+    return list(stats.values())
+
+
+def _topic_info(topic: str, group: list[_ChannelStats]) -> ChannelInfo:
+    firsts = [s.first for s in group if s.first is not None]
+    lasts = [s.last for s in group if s.last is not None]
+    return ChannelInfo(
+        topic=topic,
+        # Several channels may share a topic (one per publisher); they normally share a type.
+        message_type=", ".join(dict.fromkeys(s.type_name for s in group)),
+        message_encoding=", ".join(dict.fromkeys(s.channel.message_encoding for s in group)),
+        message_count=sum(s.count for s in group),
+        first_log_time_ns=min(firsts) if firsts else None,
+        last_log_time_ns=max(lasts) if lasts else None,
+        is_image=any(is_image_type(s.type_name) for s in group),
+    )
+
+
+def _group_by_topic(stats: list[_ChannelStats]) -> list[ChannelInfo]:
+    by_topic: dict[str, list[_ChannelStats]] = {}
+    for entry in stats:
+        by_topic.setdefault(entry.channel.topic, []).append(entry)
+    return [_topic_info(topic, group) for topic, group in by_topic.items()]
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+
+def _iter_topic(
+    reader: McapReader, topic: str, start_ns: int | None, end_ns: int | None, ordered: bool
+) -> Iterator[_Record]:
+    if _NEW_TIME_NAMES:
+        return reader.iter_messages(
+            topics=[topic], log_time_order=ordered, starting_at=start_ns, ending_before=end_ns
+        )
+    return reader.iter_messages(
+        topics=[topic], start_time=start_ns, end_time=end_ns, log_time_order=ordered
+    )
+
+
+def in_log_time_order(records: Iterable[_Record], window: int) -> Iterator[_Record]:
+    """Restore log-time order in a stream that is sorted up to `window` messages.
+
+    A heap holds at most `window` messages; a message that was written more than `window`
+    messages later than its log time would place it comes out late, i.e. out of order.
+    Equal log times keep their file order.
+    """
+    heap: list[tuple[int, int, _Record]] = []
+    for position, record in enumerate(records):
+        item = (record[2].log_time, position, record)
+        if len(heap) < window:
+            heapq.heappush(heap, item)
+        else:
+            yield heapq.heappushpop(heap, item)[2]
+    while heap:
+        yield heapq.heappop(heap)[2]
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, EndOfFile):
+        return "the file ends in the middle of a record: truncated?"
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
+class McapSource:
+    """An MCAP file, opened read-only.
+
+    Raises (constructor):
+        SourceError: the file cannot be opened or does not start with the MCAP magic.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._file: IO[bytes] = open(self.path, "rb")  # noqa: SIM115 - closed by close()
+        except OSError as exc:
+            raise SourceError(f"{self.path}: cannot open ({exc.strerror or exc})") from exc
+        try:
+            self._summary = self._read_summary()
+        except BaseException:
+            self._file.close()
+            raise
+        self._channels: list[ChannelInfo] | None = None
+        self._deserializers: dict[tuple[int, str], Deserializer] = {}
+
+    def _read_summary(self) -> Summary | None:
+        try:
+            reader = make_reader(self._file)
+        except Exception as exc:
+            raise SourceError(f"{self.path}: not an MCAP file ({_describe(exc)})") from exc
+        try:
+            summary: Summary | None = reader.get_summary()
+        # No readable footer (the recording was cut short): streaming still reads what is there.
+        except Exception:
+            return None
+        return summary
+
+    @property
+    def indexed(self) -> bool:
+        """Whether the file has chunk indexes, so that reading can seek."""
+        return self._summary is not None and bool(self._summary.chunk_indexes)
+
+    def channels(self) -> list[ChannelInfo]:
+        """Every topic of the file, with counts and first/last log times.
+
+        Counts come from the statistics record and times from the message indexes when the file
+        has them; otherwise one pass over the file counts them.
+
+        Raises:
+            SourceError: the file is corrupt or truncated.
+        """
+        if self._channels is None:
+            try:
+                stats = _stats_from_index(self._file, self._summary) if self._summary else None
+                if stats is None:
+                    stats = _stats_from_stream(self._file)
+            except Exception as exc:
+                raise SourceError(
+                    f"{self.path}: cannot list the channels ({_describe(exc)})"
+                ) from exc
+            self._channels = _group_by_topic(stats)
+        return list(self._channels)
+
+    def image_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[ImageMessage]:
+        """The image messages of `topic` with log time in [start_ns, end_ns), in log-time order.
+
+        Unindexed files are streamed and re-sorted within `REORDER_WINDOW` messages (see
+        `in_log_time_order`): files written by a single recorder are in order already.
+        A message that does not deserialize is yielded with `decode_error` set.
+
+        Raises:
+            NoCameraError: `topic` (exact name) is not an image topic of this file (at call time).
+            SourceError: while iterating, the file is corrupt or truncated, or the channel's
+                message/schema encoding is not supported or its schema does not parse.
+        """
+        image_topics = [c.topic for c in self.channels() if c.is_image]
+        if topic not in image_topics:
+            raise NoCameraError(
+                f"{self.path}: {topic!r} is not an image topic (image topics: "
+                f"{', '.join(image_topics) or 'none'})"
+            )
+        return self._images(topic, start_ns, end_ns)
+
+    def _images(
+        self, topic: str, start_ns: int | None, end_ns: int | None
+    ) -> Iterator[ImageMessage]:
+        if start_ns is not None and end_ns is not None and start_ns >= end_ns:
+            return
+        try:
+            # A handle per iteration: two iterators seeking one shared handle would interfere.
+            with open(self.path, "rb") as file:
+                for schema, channel, message in self._records(file, topic, start_ns, end_ns):
+                    if schema is not None and is_image_type(schema.name):
+                        yield self._to_image(schema, channel, message)
+        except DoseqslamError:
+            raise
+        except Exception as exc:
+            raise SourceError(
+                f"{self.path}: cannot read the messages of {topic} ({_describe(exc)})"
+            ) from exc
+
+    def _records(
+        self, file: IO[bytes], topic: str, start_ns: int | None, end_ns: int | None
+    ) -> Iterator[_Record]:
+        if self.indexed:
+            return _iter_topic(SeekingReader(file), topic, start_ns, end_ns, ordered=True)
+        # NonSeekingReader with log_time_order=True would sort the whole file in memory.
+        stream = _iter_topic(NonSeekingReader(file), topic, start_ns, end_ns, ordered=False)
+        return in_log_time_order(stream, REORDER_WINDOW)
+
+    def _to_image(self, schema: Schema, channel: Channel, message: Message) -> ImageMessage:
+        record = RecordInfo(channel.topic, message.log_time, message.publish_time, message.sequence)
+        deserialize = self._deserializer(schema, channel)
+        return image_from_payload(schema.name, message.data, deserialize, record)
+
+    def _deserializer(self, schema: Schema, channel: Channel) -> Deserializer:
+        key = (schema.id, channel.message_encoding)
+        if key not in self._deserializers:
+            build = DESERIALIZERS.get((channel.message_encoding, schema.encoding))
+            if build is None:
+                supported = ", ".join(f"{m}/{s}" for m, s in DESERIALIZERS)
+                raise SourceError(
+                    f"{self.path}: {channel.topic} uses message encoding "
+                    f"{channel.message_encoding!r} with schema encoding {schema.encoding!r}, "
+                    f"which is not supported (supported: {supported})"
+                )
+            try:
+                self._deserializers[key] = build(schema)
+            except Exception as exc:
+                raise SourceError(
+                    f"{self.path}: cannot parse the {schema.encoding} schema {schema.name} of "
+                    f"{channel.topic} ({_describe(exc)})"
+                ) from exc
+        return self._deserializers[key]
+
+    def close(self) -> None:
+        """Close the file; iterators already started keep their own handle."""
+        self._file.close()
+
+    def __enter__(self) -> McapSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

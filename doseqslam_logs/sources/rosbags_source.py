@@ -1,0 +1,171 @@
+"""ROS 1 .bag files and rosbag2 bags (directory, bare .db3, .mcap storage) through rosbags.
+
+rosbags reads ROS 1 bags with none, bz2 or lz4 chunks, rosbag2 directories with their
+metadata.yaml (sqlite3 or MCAP storage), and a bare .db3 file without metadata.yaml. Message types
+come from the definitions stored in the bag; bags without any (old rosbag2 sqlite3 files) fall back
+to the standard ROS 2 Humble types.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
+from doseqslam_logs.sources.base import ChannelInfo, ImageMessage
+from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
+
+if TYPE_CHECKING:
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import Connection
+
+ROS1_MAGIC = b"#ROSBAG V2.0"
+
+
+def _check_layout(path: Path) -> None:
+    """Fail early, with a message saying what is needed, where rosbags would fail obscurely."""
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or directory")
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise SourceError(
+                f"{path}: a rosbag2 directory needs its metadata.yaml (or pass the .db3/.mcap "
+                "file inside it)"
+            )
+        return
+    if path.suffix in (".bag", ".db3", ".mcap"):
+        return
+    with path.open("rb") as file:
+        is_ros1 = file.read(len(ROS1_MAGIC)) == ROS1_MAGIC
+    if is_ros1:
+        # rosbags tells ROS 1 from ROS 2 by the .bag suffix alone.
+        raise SourceError(f"{path}: a ROS 1 bag must have the .bag extension to be read")
+    raise SourceError(f"{path}: not a ROS bag (expected .bag, .db3, .mcap or a rosbag2 directory)")
+
+
+def _open_reader(path: Path) -> AnyReader:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    _check_layout(path)
+    is_ros1 = path.is_file() and path.suffix == ".bag"
+    fallback = get_typestore(Stores.ROS1_NOETIC if is_ros1 else Stores.ROS2_HUMBLE)
+    kind = "ROS 1 bag" if is_ros1 else "rosbag2 bag"
+    try:
+        reader = AnyReader([path], default_typestore=fallback)
+        reader.open()
+    except Exception as exc:  # rosbags, sqlite (apsw), YAML, OS and decompression errors
+        raise SourceError(f"{path}: cannot open as a {kind} ({type(exc).__name__}: {exc})") from exc
+    return reader
+
+
+def _time_range(connections: list[Connection]) -> tuple[int | None, int | None]:
+    """First and last log time from the ROS 1 reader's in-memory index (IndexData.time, sorted);
+    rosbag2 readers keep no per-topic index, so (None, None) for them."""
+    firsts, lasts = [], []
+    for connection in connections:
+        index = getattr(connection.owner, "indexes", {}).get(connection.id)
+        if index:
+            firsts.append(int(index[0].time))
+            lasts.append(int(index[-1].time))
+    return (min(firsts) if firsts else None, max(lasts) if lasts else None)
+
+
+def _topic_info(topic: str, connections: list[Connection]) -> ChannelInfo:
+    first, last = _time_range(connections)
+    return ChannelInfo(
+        topic=topic,
+        message_type=", ".join(dict.fromkeys(c.msgtype for c in connections)),
+        # ROS 1 connections have no serialization format field: they are always "ros1".
+        message_encoding=", ".join(
+            dict.fromkeys(getattr(c.ext, "serialization_format", "ros1") for c in connections)
+        ),
+        message_count=sum(c.msgcount for c in connections),
+        first_log_time_ns=first,
+        last_log_time_ns=last,
+        is_image=any(is_image_type(c.msgtype) for c in connections),
+    )
+
+
+class RosbagsSource:
+    """A ROS 1 bag or a rosbag2 bag, opened read-only.
+
+    Type names are the ROS 2 style names rosbags uses for both generations
+    ("sensor_msgs/msg/CompressedImage"). One `image_messages` iteration at a time: the readers
+    keep one current chunk.
+
+    Raises (constructor):
+        SourceError: the path is missing, has a layout rosbags cannot read (directory without
+            metadata.yaml, ROS 1 bag not named .bag), or the bag is corrupt.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._reader = _open_reader(self.path)
+
+    def channels(self) -> list[ChannelInfo]:
+        """Every topic (several connections of one topic are merged), with message counts;
+        first/last log times for ROS 1 bags only."""
+        by_topic: dict[str, list[Connection]] = {}
+        for connection in self._reader.connections:
+            by_topic.setdefault(connection.topic, []).append(connection)
+        return [_topic_info(topic, group) for topic, group in by_topic.items()]
+
+    def image_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[ImageMessage]:
+        """The image messages of `topic` with log time in [start_ns, end_ns), in log-time order.
+
+        A message that does not deserialize is yielded with `decode_error` set.
+
+        Raises:
+            NoCameraError: `topic` (exact name) is not an image topic of this bag (at call time).
+            SourceError: while iterating, the bag turns out corrupt.
+        """
+        connections = [
+            c for c in self._reader.connections if c.topic == topic and is_image_type(c.msgtype)
+        ]
+        # Never call messages() with an empty list: rosbags then yields every message of the bag.
+        if not connections:
+            image_topics = dict.fromkeys(c.topic for c in self.channels() if c.is_image)
+            raise NoCameraError(
+                f"{self.path}: {topic!r} is not an image topic (image topics: "
+                f"{', '.join(image_topics) or 'none'})"
+            )
+        return self._images(connections, start_ns, end_ns)
+
+    def _images(
+        self, connections: list[Connection], start_ns: int | None, end_ns: int | None
+    ) -> Iterator[ImageMessage]:
+        if start_ns is not None and end_ns is not None and start_ns >= end_ns:
+            return
+        try:
+            deserializers = {c.msgtype: self._deserializer(c.msgtype) for c in connections}
+            messages = self._reader.messages(connections=connections, start=start_ns, stop=end_ns)
+            for connection, log_time, payload in messages:
+                record = RecordInfo(connection.topic, log_time)
+                deserialize = deserializers[connection.msgtype]
+                yield image_from_payload(connection.msgtype, payload, deserialize, record)
+        except DoseqslamError:
+            raise
+        except Exception as exc:
+            raise SourceError(
+                f"{self.path}: cannot read the messages of {connections[0].topic} "
+                f"({type(exc).__name__}: {exc})"
+            ) from exc
+
+    def _deserializer(self, msgtype: str) -> Callable[[bytes], Any]:
+        reader = self._reader
+        return lambda payload: reader.deserialize(payload, msgtype)
+
+    def close(self) -> None:
+        """Close the bag."""
+        if self._reader.stack is not None:
+            self._reader.close()
+
+    def __enter__(self) -> RosbagsSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
