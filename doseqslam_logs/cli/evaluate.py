@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..detector import make_detector
-from ..errors import UsageError
+from ..errors import GroundTruthError, UsageError
 from ..evaluation.groundtruth import load_ground_truth
 from ..evaluation.metrics import evaluate, format_report
 from ..replay import replay
@@ -55,6 +55,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--tolerance must be >= 0, got {args.tolerance}")
     gt = load_ground_truth(args.gt, args.gt_variable)
     total = len(list_images(args.images))
+    if total != gt.n_frames:  # checked before the run: a wrong GT file is the usual cause
+        raise GroundTruthError(
+            f"{args.gt}: ground truth has {gt.n_frames} frames but {args.images} has {total} images"
+        )
     detector = make_detector(params)
     progress = Progress(total, "evaluate")
     try:

@@ -8,9 +8,9 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..errors import DoseqslamError, ExitCode
-from . import evaluate
+from . import evaluate, info
 
-SUBCOMMANDS = (evaluate,)
+SUBCOMMANDS = (info, evaluate)
 
 
 def build_parser() -> argparse.ArgumentParser:
