@@ -8,9 +8,9 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..errors import DoseqslamError, ExitCode
-from . import evaluate, info
+from . import annotate, evaluate, info
 
-SUBCOMMANDS = (info, evaluate)
+SUBCOMMANDS = (info, annotate, evaluate)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,71 @@
+"""Write a file so that it appears whole under its final name, or not at all."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+from ..errors import DoseqslamError, OutputError
+
+TEMP_SUFFIX = ".tmp"
+
+
+def temp_name(final: Path) -> Path:
+    """A fresh hidden name beside `final`, so that os.replace stays on one file system."""
+    return final.with_name(f".{final.name}.{os.getpid()}.{secrets.token_hex(4)}{TEMP_SUFFIX}")
+
+
+def _create_temp(final: Path) -> tuple[Path, BinaryIO]:
+    for _ in range(100):
+        path = temp_name(final)
+        try:
+            # O_EXCL: never write into someone else's file; mode 0o666 lets the umask decide,
+            # as it would for a plain open().
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue
+        return path, os.fdopen(fd, "wb")
+    raise FileExistsError(f"no free temporary name beside {final}")
+
+
+def _fsync_directory(folder: Path) -> None:
+    # Makes the rename itself durable; not every platform can open a directory.
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_output(final_path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
+    """A binary stream to a temporary file that becomes `final_path` when the block succeeds.
+
+    On success the data is flushed and fsynced, then renamed over `final_path` (replacing an
+    existing file atomically). On any exception the temporary file is removed and nothing
+    appears under `final_path`; `DoseqslamError`s and BaseExceptions (KeyboardInterrupt) pass
+    through unchanged, other exceptions are raised as OutputError naming the file.
+    """
+    final = Path(final_path)
+    try:
+        temp, stream = _create_temp(final)
+    except OSError as exc:
+        raise OutputError(f"{final}: cannot create the output: {exc.strerror or exc}") from exc
+    try:
+        with stream:
+            yield stream
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temp, final)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            temp.unlink()
+        if isinstance(exc, DoseqslamError) or not isinstance(exc, Exception):
+            raise
+        raise OutputError(f"{final}: cannot write the output: {exc}") from exc
+    _fsync_directory(final.parent)

@@ -1,0 +1,228 @@
+"""Our message types in each output encoding, one encoder per MCAP profile.
+
+Every encoder reads its definitions from `schemas/` (the one source of truth) and knows the
+schema encoding, schema name and data, channel metadata and message bytes of our types. A new
+profile is one new `MessageEncoder` subclass plus one entry in `ENCODERS`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import numpy as np
+from rosbags.interfaces import Nodetype
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+
+from ..schema_files import read_schema
+from .messages import MESSAGE_TYPES, MessageType
+
+ROS_PACKAGE = "doseqslam_msgs"
+TIME_TYPE = "builtin_interfaces/msg/Time"
+# The separator ROS tools put between concatenated message definitions.
+MSGDEF_SEPARATOR = "=" * 80 + "\n"
+_NUMPY_TYPES: dict[str, type[np.generic]] = {
+    "bool": np.bool_,
+    "byte": np.uint8,
+    "char": np.uint8,
+    "int8": np.int8,
+    "uint8": np.uint8,
+    "int16": np.int16,
+    "uint16": np.uint16,
+    "int32": np.int32,
+    "uint32": np.uint32,
+    "int64": np.int64,
+    "uint64": np.uint64,
+    "float32": np.float32,
+    "float64": np.float64,
+}
+
+
+class MessageEncoder(ABC):
+    """How our message types are written in files of one MCAP profile."""
+
+    profile: ClassVar[str]  # the MCAP header profile this encoder is for
+    schema_encoding: ClassVar[str]
+    message_encoding: ClassVar[str]
+
+    @abstractmethod
+    def schema_name(self, message_type: MessageType) -> str:
+        """The schema record's name, e.g. `doseqslam_msgs/msg/LoopClosure`."""
+
+    @abstractmethod
+    def schema_data(self, message_type: MessageType) -> bytes:
+        """The schema record's data: the definition from `schemas/`."""
+
+    def channel_metadata(self, message_type: MessageType) -> dict[str, str]:
+        """The channel record's metadata (none unless the profile asks for some)."""
+        return {}
+
+    @abstractmethod
+    def encode(self, message_type: MessageType, fields: Mapping[str, Any]) -> bytes:
+        """The message bytes. Raises ValueError when `fields` are not the schema's fields."""
+
+
+def check_fields(type_name: str, expected: list[str], fields: Mapping[str, Any]) -> None:
+    """Raises ValueError unless `fields` has exactly the schema's field names."""
+    missing = [name for name in expected if name not in fields]
+    extra = sorted(set(fields) - set(expected))
+    if missing or extra:
+        raise ValueError(f"{type_name}: missing fields {missing}, unknown fields {extra}")
+
+
+class _RosEncoder(MessageEncoder):
+    """Shared by ROS 1 and ROS 2: rosbags' typestore, filled from our .msg files."""
+
+    ros_version: ClassVar[int]
+
+    def __init__(self) -> None:
+        self.typestore: Typestore = get_typestore(Stores.EMPTY)  # only builtin Time, Duration
+        self.msg_texts = {t.name: read_schema(self._msg_file(t)) for t in MESSAGE_TYPES}
+        types = {}
+        for message_type in MESSAGE_TYPES:
+            text = self.msg_texts[message_type.name]
+            types.update(get_types_from_msg(text, self.typename(message_type)))
+        self.typestore.register(types)
+
+    def _msg_file(self, message_type: MessageType) -> str:
+        return f"ros{self.ros_version}/{message_type.name}.msg"
+
+    @staticmethod
+    def typename(message_type: MessageType) -> str:
+        """The name rosbags knows the type by (always the ROS 2 form)."""
+        return f"{ROS_PACKAGE}/msg/{message_type.name}"
+
+    def build(self, typename: str, fields: Mapping[str, Any]) -> object:
+        """The rosbags message object for a plain message dict.
+
+        Raises ValueError when the dict's fields differ from the definition's.
+        """
+        fielddefs = self.typestore.fielddefs[typename][1]
+        check_fields(typename, [name for name, _ in fielddefs], fields)
+        values = {name: self._value(desc, fields[name]) for name, desc in fielddefs}
+        return self.typestore.types[typename](**values)
+
+    def _value(self, desc: Any, value: Any) -> Any:
+        nodetype, detail = desc
+        if nodetype == Nodetype.NAME:
+            if detail == TIME_TYPE:  # our dicts spell it {"sec", "nsec"} for every encoding
+                return self.typestore.types[TIME_TYPE](sec=value["sec"], nanosec=value["nsec"])
+            return self.build(detail, value)
+        if nodetype in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+            item_desc = detail[0]
+            if item_desc[0] == Nodetype.BASE and item_desc[1][0] in _NUMPY_TYPES:
+                # rosbags serializes primitive arrays from numpy arrays only.
+                return np.asarray(value, dtype=_NUMPY_TYPES[item_desc[1][0]])
+            return [self._value(item_desc, item) for item in value]
+        return value
+
+
+class Ros2Encoder(_RosEncoder):
+    """ROS 2: `ros2msg` schemas and CDR messages, as rosbag2 and mcap_ros2 expect."""
+
+    profile = "ros2"
+    schema_encoding = "ros2msg"
+    message_encoding = "cdr"
+    ros_version = 2
+
+    def schema_name(self, message_type: MessageType) -> str:
+        return self.typename(message_type)
+
+    def schema_data(self, message_type: MessageType) -> bytes:
+        """Our .msg text, then the definitions it depends on (builtin_interfaces/Time).
+
+        Dependencies follow in the `===...` / `MSG: pkg/Type` form of rosbag2, which
+        mcap_ros2 and rosbags both parse.
+        """
+        text = self.msg_texts[message_type.name]
+        generated, _ = self.typestore.generate_msgdef(self.typename(message_type), ros_version=2)
+        _, separator, dependencies = generated.partition(MSGDEF_SEPARATOR)
+        if not text.endswith("\n"):
+            text += "\n"
+        return (text + separator + dependencies).encode()
+
+    def encode(self, message_type: MessageType, fields: Mapping[str, Any]) -> bytes:
+        typename = self.typename(message_type)
+        return bytes(self.typestore.serialize_cdr(self.build(typename, fields), typename))
+
+
+class Ros1Encoder(_RosEncoder):
+    """ROS 1: `ros1msg` schemas and ROS 1 serialization; `time` is a builtin there."""
+
+    profile = "ros1"
+    schema_encoding = "ros1msg"
+    message_encoding = "ros1"
+    ros_version = 1
+
+    def schema_name(self, message_type: MessageType) -> str:
+        return f"{ROS_PACKAGE}/{message_type.name}"
+
+    def schema_data(self, message_type: MessageType) -> bytes:
+        return self.msg_texts[message_type.name].encode()
+
+    def md5sum(self, message_type: MessageType) -> str:
+        """The ROS 1 md5sum of the definition, as rosbag and rospy compute it."""
+        _, md5 = self.typestore.generate_msgdef(self.typename(message_type), ros_version=1)
+        return md5
+
+    def channel_metadata(self, message_type: MessageType) -> dict[str, str]:
+        # ROS 1 consumers (playback, bag conversion) need the md5sum to advertise the type.
+        return {"md5sum": self.md5sum(message_type)}
+
+    def encode(self, message_type: MessageType, fields: Mapping[str, Any]) -> bytes:
+        typename = self.typename(message_type)
+        return bytes(self.typestore.serialize_ros1(self.build(typename, fields), typename))
+
+
+class JsonEncoder(MessageEncoder):
+    """Any other profile (foxglove, none): JSON messages described by a JSON Schema."""
+
+    profile = ""
+    schema_encoding = "jsonschema"
+    message_encoding = "json"
+
+    def __init__(self) -> None:
+        self.texts = {t.name: read_schema(f"json/{t.name}.json") for t in MESSAGE_TYPES}
+        self.properties = {
+            name: list(json.loads(text)["properties"]) for name, text in self.texts.items()
+        }
+
+    def schema_name(self, message_type: MessageType) -> str:
+        return f"{ROS_PACKAGE}/msg/{message_type.name}"
+
+    def schema_data(self, message_type: MessageType) -> bytes:
+        return self.texts[message_type.name].encode()
+
+    def encode(self, message_type: MessageType, fields: Mapping[str, Any]) -> bytes:
+        check_fields(message_type.name, self.properties[message_type.name], fields)
+        ordered = {name: fields[name] for name in self.properties[message_type.name]}
+        # allow_nan=False: NaN is not JSON; json_safe already turned it into null.
+        text = json.dumps(json_safe(ordered), allow_nan=False, separators=(",", ":"))
+        return text.encode()
+
+
+def json_safe(value: Any) -> Any:
+    """The value with every non-finite float replaced by None (JSON null)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    return value
+
+
+ENCODERS: dict[str, type[MessageEncoder]] = {
+    Ros2Encoder.profile: Ros2Encoder,
+    Ros1Encoder.profile: Ros1Encoder,
+    JsonEncoder.profile: JsonEncoder,
+}
+
+
+def encoder_for_profile(profile: str) -> MessageEncoder:
+    """The encoder for files of this MCAP profile; JSON for every profile without its own."""
+    return ENCODERS.get(profile, JsonEncoder)()

@@ -1,0 +1,229 @@
+"""The detector's decisions as plain message dicts, one per output message.
+
+The dicts carry exactly the fields of the definitions in `schemas/` (`LoopClosure`, `Sequence`),
+in the same order, with JSON-friendly values: ints, floats (NaN when missing), bools, strings,
+lists, and times as `{"sec": int, "nsec": int}`. The encoders turn them into CDR, ROS 1 or JSON.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ..detector.events import Candidate, SequenceDecision
+
+NO_STAMP = -1  # header stamp of a frame whose image message has no header
+NANOS_PER_SECOND = 1_000_000_000
+OUR_TOPIC_PREFIX = "/doseqslam/"
+
+
+@dataclass(frozen=True)
+class MessageType:
+    """One of our output message types: its definition files and its topic."""
+
+    name: str  # file stem in schemas/ros1, schemas/ros2 and schemas/json
+    topic: str
+    rank: int  # order among our messages that share a log time
+
+
+LOOP_CLOSURE = MessageType("LoopClosure", OUR_TOPIC_PREFIX + "loop_closures", 0)
+SEQUENCE = MessageType("Sequence", OUR_TOPIC_PREFIX + "sequences", 1)
+MESSAGE_TYPES: tuple[MessageType, ...] = (LOOP_CLOSURE, SEQUENCE)
+
+
+@dataclass(frozen=True)
+class TimedMessage:
+    """One output message: its type, its MCAP log time and its fields."""
+
+    type: MessageType
+    log_time_ns: int
+    index: int  # query index (loop closure) or sequence id: the last sort key
+    fields: dict[str, Any]
+
+    @property
+    def sort_key(self) -> tuple[int, int, int]:
+        return (self.log_time_ns, self.type.rank, self.index)
+
+
+class FrameTimes:
+    """Log time and header stamp of every frame the detector used, by frame index.
+
+    Two int64 arrays, so memory stays linear in the number of frames; a header stamp of
+    `NO_STAMP` (-1) means the image message had no header.
+    """
+
+    def __init__(self, log_times_ns: npt.ArrayLike, header_stamps_ns: npt.ArrayLike) -> None:
+        """Raises ValueError when the arrays are not 1-D, differ in length or hold bad times."""
+        self.log_times_ns: npt.NDArray[np.int64] = np.asarray(log_times_ns, dtype=np.int64)
+        self.header_stamps_ns: npt.NDArray[np.int64] = np.asarray(header_stamps_ns, dtype=np.int64)
+        if self.log_times_ns.ndim != 1 or self.log_times_ns.shape != self.header_stamps_ns.shape:
+            raise ValueError("log times and header stamps must be 1-D arrays of equal length")
+        if (self.log_times_ns < 0).any() or (self.header_stamps_ns < NO_STAMP).any():
+            raise ValueError("log times must be >= 0 and header stamps >= -1 (none)")
+
+    @classmethod
+    def from_pairs(cls, pairs: Iterable[tuple[int, int | None]]) -> FrameTimes:
+        """From (log time, header stamp or None) per frame, in frame order."""
+        log_times: list[int] = []
+        stamps: list[int] = []
+        for log_time, stamp in pairs:
+            log_times.append(log_time)
+            stamps.append(NO_STAMP if stamp is None else stamp)
+        return cls(log_times, stamps)
+
+    def __len__(self) -> int:
+        return int(self.log_times_ns.shape[0])
+
+    def log_time(self, index: int) -> int:
+        """Raises ValueError for an index outside the frames."""
+        return int(self.log_times_ns[self._check(index)])
+
+    def stamp(self, index: int) -> int | None:
+        """The header stamp, or None when the frame's image had none."""
+        stamp = int(self.header_stamps_ns[self._check(index)])
+        return None if stamp == NO_STAMP else stamp
+
+    def _check(self, index: int) -> int:
+        if not 0 <= index < len(self):
+            raise ValueError(f"frame index {index} outside the {len(self)} frames with times")
+        return index
+
+
+def time_dict(time_ns: int) -> dict[str, int]:
+    """A nanosecond time as {"sec", "nsec"}: JSON numbers stay far below 2^53."""
+    sec, nsec = divmod(time_ns, NANOS_PER_SECOND)
+    return {"sec": sec, "nsec": nsec}
+
+
+def optional_float(value: float | None) -> float:
+    """None becomes NaN, the documented "missing" value of every float field."""
+    return math.nan if value is None else float(value)
+
+
+def loop_closure_messages(
+    decisions: Iterable[SequenceDecision],
+    frame_times: FrameTimes,
+    method: str,
+    parameters_hash: str,
+) -> list[TimedMessage]:
+    """One `LoopClosure` message per reported pair, with the query image's log time.
+
+    Raises ValueError when a decision names a frame outside `frame_times` or another method.
+    """
+    messages: list[TimedMessage] = []
+    for decision in decisions:
+        _check_method(decision, method)
+        pairs = decision.loop_closures
+        if not pairs:
+            continue
+        match_bounds = (min(p.match_index for p in pairs), max(p.match_index for p in pairs))
+        for pair in pairs:
+            fields = _loop_closure_fields(
+                decision, pair, match_bounds, frame_times, method, parameters_hash
+            )
+            log_time = frame_times.log_time(pair.query_index)
+            messages.append(TimedMessage(LOOP_CLOSURE, log_time, pair.query_index, fields))
+    return messages
+
+
+def sequence_messages(
+    decisions: Iterable[SequenceDecision],
+    frame_times: FrameTimes,
+    method: str,
+    parameters_hash: str,
+) -> list[TimedMessage]:
+    """One `Sequence` message per decision, with the log time of the sequence's last frame.
+
+    Raises ValueError when a decision names a frame outside `frame_times` or another method.
+    """
+    messages: list[TimedMessage] = []
+    for decision in decisions:
+        _check_method(decision, method)
+        fields = _sequence_fields(decision, frame_times, method, parameters_hash)
+        log_time = frame_times.log_time(decision.last_index)
+        messages.append(TimedMessage(SEQUENCE, log_time, decision.sequence_id, fields))
+    return messages
+
+
+def _check_method(decision: SequenceDecision, method: str) -> None:
+    if decision.method != method:
+        raise ValueError(
+            f"sequence {decision.sequence_id} was decided by {decision.method!r}, not {method!r}"
+        )
+
+
+def _frame_fields(prefix: str, index: int, frame_times: FrameTimes) -> dict[str, Any]:
+    stamp = frame_times.stamp(index)
+    return {
+        f"{prefix}_index": index,
+        f"{prefix}_log_time": time_dict(frame_times.log_time(index)),
+        f"{prefix}_stamp": time_dict(0 if stamp is None else stamp),
+        f"{prefix}_has_stamp": stamp is not None,
+    }
+
+
+def _decision_values(decision: SequenceDecision) -> dict[str, Any]:
+    return {
+        "gamma": float(decision.gamma),
+        "gamma_previous": optional_float(decision.gamma_previous),
+        "gamma_next": optional_float(decision.gamma_next),
+        "f": float(decision.f),
+        "threshold": float(decision.threshold),
+    }
+
+
+def _loop_closure_fields(
+    decision: SequenceDecision,
+    pair: Candidate,
+    match_bounds: tuple[int, int],
+    frame_times: FrameTimes,
+    method: str,
+    parameters_hash: str,
+) -> dict[str, Any]:
+    return {
+        **_frame_fields("query", pair.query_index, frame_times),
+        **_frame_fields("match", pair.match_index, frame_times),
+        "difference": float(pair.difference),
+        "sequence_id": decision.sequence_id,
+        "sequence_first_index": decision.first_index,
+        "sequence_last_index": decision.last_index,
+        "match_first_index": match_bounds[0],
+        "match_last_index": match_bounds[1],
+        **_decision_values(decision),
+        "method": method,
+        "parameters_hash": parameters_hash,
+    }
+
+
+def _sequence_fields(
+    decision: SequenceDecision, frame_times: FrameTimes, method: str, parameters_hash: str
+) -> dict[str, Any]:
+    candidates: Sequence[Candidate] = decision.candidates
+    has_candidate = decision.best_start is not None
+    return {
+        "sequence_id": decision.sequence_id,
+        "first_index": decision.first_index,
+        "last_index": decision.last_index,
+        "first_log_time": time_dict(frame_times.log_time(decision.first_index)),
+        "last_log_time": time_dict(frame_times.log_time(decision.last_index)),
+        "first_timestamp": time_dict(decision.first_timestamp_ns),
+        "last_timestamp": time_dict(decision.last_timestamp_ns),
+        "database_size": decision.database_size,
+        "has_candidate": has_candidate,
+        "best_start": decision.best_start if decision.best_start is not None else -1,
+        "best_velocity": optional_float(decision.best_velocity),
+        "best_score": optional_float(decision.best_score),
+        "second_score": optional_float(decision.second_score),
+        **_decision_values(decision),
+        "accepted": decision.accepted,
+        "candidate_query_indices": [c.query_index for c in candidates],
+        "candidate_match_indices": [c.match_index for c in candidates],
+        "candidate_differences": [float(c.difference) for c in candidates],
+        "method": method,
+        "parameters_hash": parameters_hash,
+    }
