@@ -1,1 +1,1 @@
-"""The output message definitions (JSON schema, ROS 1 and ROS 2 .msg): the one source the writers use."""
+"""Output message definitions (JSON schema, ROS 1 and ROS 2 .msg): the one source for writers."""

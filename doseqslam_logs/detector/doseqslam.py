@@ -22,6 +22,7 @@ from .events import Candidate, SequenceDecision
 from .params import Parameters
 from .preprocess import frame_vector
 from .segmentation import Segmenter, make_segmenter
+from .timing import StageTimes
 from .trajectory import normalize, trajectory_scores
 
 GrayImage = npt.NDArray[np.uint8]
@@ -88,6 +89,7 @@ class DOSeqSLAM:
         self._sequences: list[_Sequence] = []
         self._next_id = 0
         self._finished = False
+        self.timings = StageTimes()
 
     @property
     def feature_detector(self) -> str:
@@ -115,13 +117,16 @@ class DOSeqSLAM:
                 f"timestamps must not decrease: {timestamp_ns} after {self._timestamps[-1]}"
             )
         p = self.params
-        index = self._store.append(frame_vector(gray, p.image_width, p.image_height, p.patch_size))
+        with self.timings.stage("preprocess"):
+            vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)
+        index = self._store.append(vector)
         self._timestamps.append(timestamp_ns)
-        if self._open_first is not None and self._reached_cap(index):
-            self._segmenter.restart(gray)
-            starts = True
-        else:
-            starts = self._segmenter.starts_sequence(gray)
+        with self.timings.stage("segmentation"):
+            if self._open_first is not None and self._reached_cap(index):
+                self._segmenter.restart(gray)
+                starts = True
+            else:
+                starts = self._segmenter.starts_sequence(gray)
         if not starts and self._open_first is not None:
             return []
         if self._open_first is not None:
@@ -178,17 +183,21 @@ class DOSeqSLAM:
         database = min(self._database_size(seq.first), seq.first)
         if database == 0:
             return QueryResult(database_size=0, gamma=1.0)
-        rows = sad_rows(self._store.rows(seq.first, seq.last), self._store, database)
-        enhanced = enhance(rows, self.params.enhancement_window)
-        scores = trajectory_scores(enhanced, self.params.velocities)
-        norm = normalize(scores.scores, WINDOW_LENGTHS * before, WINDOW_LENGTHS * after)
+        with self.timings.stage("sad"):
+            rows = sad_rows(self._store.rows(seq.first, seq.last), self._store, database)
+        with self.timings.stage("enhance"):
+            enhanced = enhance(rows, self.params.enhancement_window)
+        with self.timings.stage("trajectory"):
+            scores = trajectory_scores(enhanced, self.params.velocities)
+            norm = normalize(scores.scores, WINDOW_LENGTHS * before, WINDOW_LENGTHS * after)
         if norm is None:  # the database is shorter than any trajectory of this sequence
             return QueryResult(database_size=database, gamma=1.0)
-        if self.params.association == "greedy":
-            matches = greedy_matches(enhanced, norm.best_start, self.params.velocity_max)
-        else:
-            matches = trajectory_matches(scores, norm.best_start)
-        differences = pair_differences(enhanced, matches)
+        with self.timings.stage("association"):
+            if self.params.association == "greedy":
+                matches = greedy_matches(enhanced, norm.best_start, self.params.velocity_max)
+            else:
+                matches = trajectory_matches(scores, norm.best_start)
+            differences = pair_differences(enhanced, matches)
         candidates = tuple(
             Candidate(
                 query_index=seq.first + z,

@@ -11,6 +11,9 @@ FloatArray = npt.NDArray[np.float32]
 
 # A window whose population std is below this is flat and its z-scores are 0.
 FLAT_WINDOW_STD = 1e-9
+# Rows are enhanced in chunks of about this many elements: the float64 temporaries of a long
+# sequence against an hour of frames would otherwise take gigabytes.
+CHUNK_ELEMENTS = 1 << 20
 
 
 def enhance(rows: FloatArray, epsilon: int) -> FloatArray:
@@ -20,27 +23,46 @@ def enhance(rows: FloatArray, epsilon: int) -> FloatArray:
     in magnitude, so adding the constant sqrt(epsilon) makes every value >= 0 (the gamma ratio
     needs non-negative scores) without shifting rows by their own minimum.
     """
-    rows64 = np.asarray(rows, dtype=np.float64)
-    if rows64.ndim != 2:
+    if rows.ndim != 2:
         raise ValueError("enhance expects a 2-D array of rows")
-    n = rows64.shape[1]
+    out = np.empty(rows.shape, np.float32)
+    step = max(1, CHUNK_ELEMENTS // max(rows.shape[1], 1))
+    for first in range(0, rows.shape[0], step):
+        out[first : first + step] = _enhance_chunk(rows[first : first + step], epsilon)
+    return out
+
+
+def _window_sum(values: npt.NDArray[np.float64], half: int) -> npt.NDArray[np.float64]:
+    """Sum over the clipped window j - half .. j + half of every column, by shifted adds.
+
+    Shifted adds (not cumulative sums) keep the variance exact: a cumulative sum over a long
+    row cancels catastrophically when a window's spread is tiny next to the row's values.
+    """
+    n = values.shape[1]
+    total: npt.NDArray[np.float64] = values.copy()
+    for k in range(1, min(half, n - 1) + 1):
+        total[:, : n - k] += values[:, k:]  # the element k to the right
+        total[:, k:] += values[:, : n - k]  # the element k to the left
+    return total
+
+
+def _enhance_chunk(rows: FloatArray, epsilon: int) -> FloatArray:
+    x = np.asarray(rows, dtype=np.float64)
+    n = x.shape[1]
     if n == 0:
-        return np.zeros(rows64.shape, np.float32)
+        return np.zeros(x.shape, np.float32)
     half = epsilon // 2
     index = np.arange(n)
-    lo = np.maximum(index - half, 0)
-    hi = np.minimum(index + half, n - 1) + 1
-    count = (hi - lo).astype(np.float64)
-    zero = np.zeros((rows64.shape[0], 1))
-    csum = np.concatenate([zero, np.cumsum(rows64, axis=1)], axis=1)
-    # Second moments about the row mean keep the cumulative sums well conditioned.
-    centred = rows64 - rows64.mean(axis=1, keepdims=True)
-    csq = np.concatenate([zero, np.cumsum(centred * centred, axis=1)], axis=1)
-    ccen = np.concatenate([zero, np.cumsum(centred, axis=1)], axis=1)
-    mean = (csum[:, hi] - csum[:, lo]) / count
-    mean_c = (ccen[:, hi] - ccen[:, lo]) / count
-    var = (csq[:, hi] - csq[:, lo]) / count - mean_c * mean_c
-    std = np.sqrt(np.maximum(var, 0.0))
+    count = (np.minimum(index + half, n - 1) - np.maximum(index - half, 0) + 1).astype(np.float64)
+    mean = _window_sum(x, half) / count
+    squares = np.zeros_like(x)
+    for k in range(-half, half + 1):
+        lo, hi = max(0, -k), min(n, n - k)  # columns j whose neighbour j + k exists
+        if lo >= hi:
+            continue
+        deviation = x[:, lo + k : hi + k] - mean[:, lo:hi]
+        squares[:, lo:hi] += deviation * deviation
+    std = np.sqrt(squares / count)
     flat = std < FLAT_WINDOW_STD
-    z = np.where(flat, 0.0, (rows64 - mean) / np.where(flat, 1.0, std))
+    z = np.where(flat, 0.0, (x - mean) / np.where(flat, 1.0, std))
     return (z + math.sqrt(epsilon)).astype(np.float32)

@@ -62,7 +62,7 @@ class Parameters:
     # Segmentation (paper III-B): a sequence ends when at most one common feature survives.
     feature_detector: FeatureDetector = "auto"
     max_features: int = 500
-    feature_image_max_side: int = 320  # frames are shrunk to this before feature detection
+    feature_image_max_side: int = 240  # frames are shrunk to this before feature detection
     match_ratio: float = 0.8  # Lowe ratio test for descriptor matching
     min_features: int = 10  # a frame with fewer features joins the current sequence
     max_sequence_length: int = 300  # frames; 0 turns the cap off

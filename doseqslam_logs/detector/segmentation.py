@@ -22,7 +22,7 @@ GrayImage = npt.NDArray[np.uint8]
 
 # The order in which "auto" tries detectors: SURF when the installed OpenCV has the non-free
 # module (the paper's choice), else the free detector chosen by measurement (docs/results.md).
-AUTO_ORDER = ("surf", "orb")
+AUTO_ORDER = ("surf", "sift", "orb")
 
 
 class Segmenter(Protocol):
@@ -111,6 +111,7 @@ class DescriptorSegmenter:
         self._ratio = params.match_ratio
         self._min_features = params.min_features
         self._common: _Features | None = None
+        self._seeded = False
 
     def _detect(self, gray: GrayImage) -> _Features:
         keypoints, descriptors = self._detector.detectAndCompute(shrink(gray, self._max_side), None)
@@ -139,22 +140,28 @@ class DescriptorSegmenter:
     def starts_sequence(self, gray: GrayImage) -> bool:
         current = self._detect(gray)
         if self._common is None:
-            self._common = current
+            self._start(current)
             return True
         if current.count < self._min_features:
             return False  # dark or blurred frame: joins the current sequence
-        if self._common.count < self._min_features:
-            self._common = current  # the sequence began featureless: seed it now
+        if not self._seeded:
+            self._start(current)  # the sequence began on featureless frames: seed it now
             return False
         surviving = self._surviving(current)
         if surviving.count <= 1:
-            self._common = current
+            self._start(current)
             return True
         self._common = surviving
         return False
 
     def restart(self, gray: GrayImage) -> None:
-        self._common = self._detect(gray)
+        self._start(self._detect(gray))
+
+    def _start(self, features: _Features) -> None:
+        self._common = features
+        # Only a frame with enough features can seed the common set; until one comes, the
+        # sequence cannot end (a dark stretch stays one sequence with its neighbours).
+        self._seeded = features.count >= self._min_features
 
 
 class KltSegmenter:
@@ -170,11 +177,13 @@ class KltSegmenter:
         self._min_features = params.min_features
         self._previous: GrayImage | None = None
         self._points: npt.NDArray[np.float32] | None = None
+        self._seeded = False
 
     def _seed(self, small: GrayImage) -> None:
         corners = cv2.goodFeaturesToTrack(small, self._max_features, 0.01, 7)
         self._points = None if corners is None else corners.astype(np.float32)
         self._previous = small
+        self._seeded = self._points is not None and len(self._points) >= self._min_features
 
     def _track(self, small: GrayImage) -> npt.NDArray[np.float32] | None:
         assert self._previous is not None and self._points is not None
@@ -197,8 +206,8 @@ class KltSegmenter:
         if self._previous is None or self._previous.shape != small.shape:
             self._seed(small)  # first frame, or the resolution changed: nothing to track
             return True
-        if self._points is None or len(self._points) < self._min_features:
-            self._seed(small)  # the sequence began featureless: seed it now
+        if not self._seeded:
+            self._seed(small)  # the sequence began on featureless frames: seed it now
             return False
         tracked = self._track(small)
         if tracked is None:
