@@ -307,3 +307,15 @@ def test_are_true_matches_a_dense_scan(
     got = gt.are_true([q for q, _ in inside], [m for _, m in inside], tolerance)
     assert got.tolist() == expected
     assert gt.query_rows().tolist() == np.flatnonzero(dense.any(axis=1)).tolist()
+
+
+def test_scipy_sparse_npz_round_trip(tmp_path) -> None:
+    """Large ground truths (hour-long logs) are saved with scipy.sparse.save_npz."""
+    from scipy import sparse
+
+    matrix = sparse.csr_matrix(([1, 1, 1], ([5, 9, 9], [1, 2, 3])), shape=(36000, 36000))
+    path = tmp_path / "big_gt.npz"
+    sparse.save_npz(path, matrix)
+    gt = load_ground_truth(path)
+    assert gt.n_frames == 36000 and gt.n_loop_events == 2
+    assert gt.is_true(9, 3) and not gt.is_true(9, 4) and gt.is_true(9, 4, tolerance=1)

@@ -272,9 +272,15 @@ def _load_npy(file: Path, variable: str | None) -> tuple[Any, None]:
         raise GroundTruthError(f"{file}: not a readable .npy array ({exc})") from exc
 
 
+# The arrays scipy.sparse.save_npz writes: such a file holds one sparse matrix.
+_SPARSE_NPZ_KEYS = {"format", "shape", "data"}
+
+
 def _load_npz(file: Path, variable: str | None) -> tuple[Any, str]:
     try:
         with np.load(file, allow_pickle=False) as archive:
+            if _SPARSE_NPZ_KEYS <= set(archive.files) and variable is None:
+                return sparse.load_npz(file), "sparse"
             chosen = _pick_variable(file, list(archive.files), variable)
             return archive[chosen], chosen
     except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
