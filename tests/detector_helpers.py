@@ -19,12 +19,18 @@ class ScriptedSegmenter:
         self._starts = set(starts) | {0}
         self._index = -1
 
-    def starts_sequence(self, gray: npt.NDArray[np.uint8]) -> bool:
+    def prepare(self, gray: npt.NDArray[np.uint8]) -> None:
+        return None
+
+    def update(self, prepared: None) -> bool:
         self._index += 1
         return self._index in self._starts
 
-    def restart(self, gray: npt.NDArray[np.uint8]) -> None:
+    def restart(self, prepared: None) -> None:
         self._index += 1
+
+    def starts_sequence(self, gray: npt.NDArray[np.uint8]) -> bool:
+        return self.update(self.prepare(gray))
 
 
 def noise_frames(count: int, seed: int = 0, shape: tuple[int, int] = (48, 96)) -> list:

@@ -197,3 +197,17 @@ def test_frames_are_compared_in_a_place_recognizing_way(shared_data) -> None:
     revisit = np.abs(vec[60] - vec[20]).mean()  # GT: image 61 revisits image 21
     unrelated = np.abs(vec[60] - vec[5]).mean()
     assert revisit < unrelated
+
+
+@pytest.mark.parametrize("method", ["doseqslam", "seqslam"])
+def test_a_prepare_pool_gives_the_same_decisions(shared_data, method) -> None:
+    from doseqslam_logs.frames import Frame
+    from doseqslam_logs.replay import replay
+
+    frames = [
+        Frame(i, i * SECOND, i * SECOND, None, f) for i, f in enumerate(rtabmap_frames(shared_data))
+    ]
+    params = Parameters(method=method, kappa_s=10.0)
+    serial = replay(frames, make_detector(params), workers=1).decisions
+    pooled = replay(frames, make_detector(params), workers=2).decisions
+    assert serial == pooled and len(serial) > 1

@@ -25,7 +25,7 @@ def scripted(detected: list[int], lost_per_frame: int) -> list[bool]:
     """Frames detect `detected[i]` features; every frame loses `lost_per_frame` common ones."""
     seg = DescriptorSegmenter(Parameters(min_features=10), "orb")
     frames = iter(detected)
-    seg._detect = lambda gray: features(next(frames))  # type: ignore[method-assign]
+    seg.prepare = lambda gray: features(next(frames))  # type: ignore[method-assign]
     seg._surviving = lambda current: features(  # type: ignore[method-assign]
         max(seg._common.count - lost_per_frame, 0)
     )

@@ -7,7 +7,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from .doseqslam import DOSeqSLAM
+from .doseqslam import DOSeqSLAM, PreparedFrame
 from .events import Candidate, SequenceDecision
 from .params import Parameters
 from .seqslam import SeqSLAM
@@ -17,6 +17,7 @@ __all__ = [
     "DOSeqSLAM",
     "Detector",
     "Parameters",
+    "PreparedFrame",
     "SeqSLAM",
     "SequenceDecision",
     "make_detector",
@@ -38,7 +39,11 @@ class Detector(Protocol):
     @property
     def memory_bytes(self) -> int: ...
 
+    def prepare(self, gray: npt.NDArray[np.uint8]) -> PreparedFrame: ...
+
     def push(self, timestamp_ns: int, gray: npt.NDArray[np.uint8]) -> list[SequenceDecision]: ...
+
+    def push_prepared(self, timestamp_ns: int, frame: PreparedFrame) -> list[SequenceDecision]: ...
 
     def finish(self) -> list[SequenceDecision]: ...
 

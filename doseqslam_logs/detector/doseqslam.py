@@ -11,6 +11,7 @@ import math
 from array import array
 from bisect import bisect_right
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +32,14 @@ GrayImage = npt.NDArray[np.uint8]
 DECISION_WEIGHTS = (1.0, 4.0, 1.0)
 # The exclusion window spans this many lengths of the neighbouring sequences (paper eq. 7).
 WINDOW_LENGTHS = 2
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """What `prepare` computes from one frame alone: safe to compute ahead, in threads."""
+
+    vector: npt.NDArray[np.float32]
+    segmentation: Any
 
 
 @dataclass(frozen=True)
@@ -105,28 +114,38 @@ class DOSeqSLAM:
         """Bytes held for frame vectors and timestamps (the part that grows with the log)."""
         return self._store.nbytes + self._timestamps.itemsize * len(self._timestamps)
 
+    def prepare(self, gray: GrayImage) -> PreparedFrame:
+        """The frame vector and segmentation features; thread-safe, needs no other frame."""
+        p = self.params
+        with self.timings.stage("preprocess"):
+            vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)
+        with self.timings.stage("features"):
+            features = self._segmenter.prepare(gray)
+        return PreparedFrame(vector, features)
+
     def push(self, timestamp_ns: int, gray: GrayImage) -> list[SequenceDecision]:
         """Add the next frame; returns the decisions this frame made possible.
 
         Raises ValueError for a timestamp earlier than the previous one or after `finish`.
         """
+        return self.push_prepared(timestamp_ns, self.prepare(gray))
+
+    def push_prepared(self, timestamp_ns: int, frame: PreparedFrame) -> list[SequenceDecision]:
+        """`push` for a frame already prepared (e.g. by a pool running `prepare` ahead)."""
         if self._finished:
             raise ValueError("push after finish")
         if self._timestamps and timestamp_ns < self._timestamps[-1]:
             raise ValueError(
                 f"timestamps must not decrease: {timestamp_ns} after {self._timestamps[-1]}"
             )
-        p = self.params
-        with self.timings.stage("preprocess"):
-            vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)
-        index = self._store.append(vector)
+        index = self._store.append(frame.vector)
         self._timestamps.append(timestamp_ns)
         with self.timings.stage("segmentation"):
             if self._open_first is not None and self._reached_cap(index):
-                self._segmenter.restart(gray)
+                self._segmenter.restart(frame.segmentation)
                 starts = True
             else:
-                starts = self._segmenter.starts_sequence(gray)
+                starts = self._segmenter.update(frame.segmentation)
         if not starts and self._open_first is not None:
             return []
         if self._open_first is not None:

@@ -9,6 +9,7 @@ authors' later code) tracks points instead and ends a sequence when none survive
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -26,16 +27,28 @@ AUTO_ORDER = ("surf", "sift", "orb")
 
 
 class Segmenter(Protocol):
-    """Decides, frame by frame, where sequences start."""
+    """Decides, frame by frame, where sequences start.
+
+    `prepare` is the per-frame work that needs no other frame (feature extraction); it is
+    thread-safe, so a pool can run it ahead of the sequential `update`.
+    """
 
     name: str
 
-    def starts_sequence(self, gray: GrayImage) -> bool:
-        """Feed the next frame; True when it starts a new sequence (the first frame does)."""
+    def prepare(self, gray: GrayImage) -> Any:
+        """Per-frame work that depends on this frame only."""
         ...
 
-    def restart(self, gray: GrayImage) -> None:
+    def update(self, prepared: Any) -> bool:
+        """Feed the next prepared frame; True when it starts a new sequence (the first does)."""
+        ...
+
+    def restart(self, prepared: Any) -> None:
         """Start a new sequence at this frame regardless of its features (the length cap)."""
+        ...
+
+    def starts_sequence(self, gray: GrayImage) -> bool:
+        """`update(prepare(gray))`."""
         ...
 
 
@@ -104,7 +117,8 @@ class DescriptorSegmenter:
 
     def __init__(self, params: Parameters, name: str) -> None:
         self.name = name
-        self._detector, norm = _create(name, params.max_features)
+        _, norm = _create(name, params.max_features)  # fails early if the build lacks it
+        self._local = threading.local()  # OpenCV feature objects are not shared across threads
         self._matcher = cv2.BFMatcher(norm)
         self._max_features = params.max_features
         self._max_side = params.feature_image_max_side
@@ -113,8 +127,12 @@ class DescriptorSegmenter:
         self._common: _Features | None = None
         self._seeded = False
 
-    def _detect(self, gray: GrayImage) -> _Features:
-        keypoints, descriptors = self._detector.detectAndCompute(shrink(gray, self._max_side), None)
+    def prepare(self, gray: GrayImage) -> _Features:
+        """This frame's descriptors (strongest `max_features`), on the shrunk frame."""
+        detector = getattr(self._local, "detector", None)
+        if detector is None:
+            detector = self._local.detector = _create(self.name, self._max_features)[0]
+        keypoints, descriptors = detector.detectAndCompute(shrink(gray, self._max_side), None)
         if descriptors is None or len(keypoints) == 0:
             return _Features(None)
         if len(keypoints) > self._max_features:  # AKAZE/BRISK have no feature budget
@@ -138,7 +156,9 @@ class DescriptorSegmenter:
         return _Features(self._common.descriptors[rows] if rows else None)
 
     def starts_sequence(self, gray: GrayImage) -> bool:
-        current = self._detect(gray)
+        return self.update(self.prepare(gray))
+
+    def update(self, current: _Features) -> bool:
         if self._common is None:
             self._start(current)
             return True
@@ -154,8 +174,8 @@ class DescriptorSegmenter:
         self._common = surviving
         return False
 
-    def restart(self, gray: GrayImage) -> None:
-        self._start(self._detect(gray))
+    def restart(self, prepared: _Features) -> None:
+        self._start(prepared)
 
     def _start(self, features: _Features) -> None:
         self._common = features
@@ -201,8 +221,13 @@ class KltSegmenter:
         good &= error < self.FB_MAX_ERROR
         return forward[good] if good.any() else None
 
+    def prepare(self, gray: GrayImage) -> GrayImage:
+        return shrink(gray, self._max_side)
+
     def starts_sequence(self, gray: GrayImage) -> bool:
-        small = shrink(gray, self._max_side)
+        return self.update(self.prepare(gray))
+
+    def update(self, small: GrayImage) -> bool:
         if self._previous is None or self._previous.shape != small.shape:
             self._seed(small)  # first frame, or the resolution changed: nothing to track
             return True
@@ -216,8 +241,8 @@ class KltSegmenter:
         self._points, self._previous = tracked, small
         return False
 
-    def restart(self, gray: GrayImage) -> None:
-        self._seed(shrink(gray, self._max_side))
+    def restart(self, small: GrayImage) -> None:
+        self._seed(small)
 
 
 def make_segmenter(params: Parameters) -> Segmenter:

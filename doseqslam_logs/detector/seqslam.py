@@ -16,10 +16,12 @@ import numpy as np
 import numpy.typing as npt
 
 from .difference import FrameStore, sad_rows
+from .doseqslam import PreparedFrame
 from .enhance import enhance
 from .events import Candidate, SequenceDecision
 from .params import Parameters
 from .preprocess import frame_vector
+from .timing import StageTimes
 from .trajectory import normalize, trajectory_scores
 
 GrayImage = npt.NDArray[np.uint8]
@@ -42,6 +44,7 @@ class SeqSLAM:
         # Raw difference rows of the last ds frames, each against every frame old enough for
         # it; a trajectory containing the row needs a prefix of it (its first frame is older).
         self._rows: deque[FloatArray] = deque(maxlen=self.params.seqslam_length)
+        self.timings = StageTimes()
 
     @property
     def frame_count(self) -> int:
@@ -52,20 +55,32 @@ class SeqSLAM:
         rows = sum(r.nbytes for r in self._rows)
         return self._store.nbytes + rows + self._timestamps.itemsize * len(self._timestamps)
 
+    def prepare(self, gray: GrayImage) -> PreparedFrame:
+        """The frame vector (SeqSLAM needs no features); thread-safe."""
+        p = self.params
+        with self.timings.stage("preprocess"):
+            vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)
+        return PreparedFrame(vector, None)
+
     def push(self, timestamp_ns: int, gray: GrayImage) -> list[SequenceDecision]:
         """Add the next frame; returns the decision on it as a query.
 
         Raises ValueError for a timestamp earlier than the previous one.
         """
+        return self.push_prepared(timestamp_ns, self.prepare(gray))
+
+    def push_prepared(self, timestamp_ns: int, frame: PreparedFrame) -> list[SequenceDecision]:
+        """`push` for a frame already prepared."""
         if self._timestamps and timestamp_ns < self._timestamps[-1]:
             raise ValueError(
                 f"timestamps must not decrease: {timestamp_ns} after {self._timestamps[-1]}"
             )
-        p = self.params
-        index = self._store.append(frame_vector(gray, p.image_width, p.image_height, p.patch_size))
+        index = self._store.append(frame.vector)
         self._timestamps.append(timestamp_ns)
         database = self._database_size(index)
-        self._rows.append(sad_rows(self._store.rows(index, index), self._store, database)[0])
+        with self.timings.stage("sad"):
+            row = sad_rows(self._store.rows(index, index), self._store, database)[0]
+        self._rows.append(row)
         return [self._decide(index)]
 
     def finish(self) -> list[SequenceDecision]:
