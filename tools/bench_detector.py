@@ -25,7 +25,7 @@ RATE_HZ = 10.0
 FRAME_W, FRAME_H = 160, 120
 PANORAMA_W = 4000  # one lap = PANORAMA_W / STEP_PX frames
 STEP_PX = 8
-STAGES = ("preprocess", "segmentation", "sad", "enhance", "trajectory", "association")
+STAGES = ("preprocess", "features", "segmentation", "sad", "enhance", "trajectory", "association")
 
 
 def panorama(seed: int = 7) -> np.ndarray:
