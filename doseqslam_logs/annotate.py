@@ -13,12 +13,27 @@ from pathlib import Path
 
 from . import __version__
 from .detector import Parameters, make_detector
+from .errors import (
+    DoseqslamError,
+    ImageDecodeError,
+    OutputError,
+    SourceError,
+    TimestampError,
+)
 from .frames import Frame
-from .log_frames import FrameCounts, OnError, TimeSource, decoded_frames
+from .log_frames import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
 from .replay import ReplayResult, replay
-from .sinks.mcap_writer import Annotations, WriteSummary, write_annotated_mcap
+from .sinks.atomic import scratch_file
+from .sinks.mcap_writer import (
+    MCAP_MAGIC,
+    Annotations,
+    WriteSummary,
+    refuse_same_file,
+    write_annotated_mcap,
+)
 from .sinks.messages import FrameTimes
 from .sources import open_source, pick_image_topic
+from .sources.salvage import SalvageReport, salvage_mcap
 
 HASH_BLOCK = 1 << 20
 
@@ -33,6 +48,10 @@ class AnnotateOptions:
     end_ns: int | None = None
     on_error: OnError = "skip"
     sidecar: bool = False
+    # MCAP input: first copy every readable record into a clean temporary MCAP beside the
+    # output (see sources.salvage) and annotate that: a truncated or corrupt file then gives
+    # what it still holds instead of an error. Other inputs: no effect.
+    recover: bool = False
 
 
 @dataclass(frozen=True)
@@ -44,6 +63,7 @@ class AnnotateResult:
     counts: FrameCounts
     written: WriteSummary
     source_sha256: str
+    recovery: SalvageReport | None = None  # what --recover found (MCAP inputs only)
 
 
 def source_sha256(path: Path) -> str:
@@ -82,6 +102,7 @@ def run_metadata(
     sha256: str,
     topic: str,
     options: AnnotateOptions,
+    recovery: SalvageReport | None = None,
 ) -> dict[str, str]:
     """The `doseqslam` metadata record: strings only, nothing that varies between runs."""
     return {
@@ -97,13 +118,27 @@ def run_metadata(
         "time_source": options.time_source,
         "start_ns": "" if options.start_ns is None else str(options.start_ns),
         "end_ns": "" if options.end_ns is None else str(options.end_ns),
+        "on_error": options.on_error,
+        "image_messages": str(counts.messages),
         "frames_used": str(counts.used),
         "frames_skipped": str(counts.skipped_total),
-        "frames_skipped_by_reason": json.dumps(dict(sorted(counts.skipped.items()))),
+        "frames_skipped_by_reason": json.dumps(counts.skipped_by_reason()),
+        "first_skipped_by_reason": json.dumps(dict(sorted(counts.first_skip.items()))),
         "log_time_fallbacks": str(counts.log_time_fallbacks),
+        "clock_jumps": str(counts.clock_jumps),
+        "first_clock_jump": counts.first_clock_jump,
+        "recovered": "" if recovery is None else json.dumps(recovery.as_metadata()),
         "sequences": str(len(result.decisions)),
         "loop_closures": str(result.loop_closures),
     }
+
+
+def _is_mcap(path: Path) -> bool:
+    try:
+        with path.open("rb") as file:
+            return file.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False  # open_source says what is wrong with it
 
 
 def annotate_log(
@@ -112,28 +147,91 @@ def annotate_log(
     params: Parameters,
     options: AnnotateOptions | None = None,
     progress: Callable[[int], None] | None = None,
+    expected: Callable[[int | None], None] | None = None,
 ) -> AnnotateResult:
     """Replay the detector over the log's camera topic and write the annotated MCAP.
 
-    Raises SourceError / NoCameraError (input), ImageDecodeError (on_error="fail"),
+    `progress(frames done)` is called after each frame, `expected(image messages or None)`
+    once the topic is known. The input is only read; the output appears whole or not at all.
+
+    Raises SourceError / NoCameraError (input), ImageDecodeError / TimestampError (a frame
+    with on_error="fail"; ImageDecodeError also when not one image could be decoded),
     OutputError (output), ParameterError.
     """
     log, output = Path(log), Path(output)
     options = options or AnnotateOptions()
+    if log.exists():  # before the detector runs, not after
+        refuse_same_file(log, output)
+    if not (options.recover and _is_mcap(log)):
+        return _annotate(log, log, output, params, options, progress, expected, None)
+    with scratch_file(output) as repaired:
+        try:
+            with repaired.open("wb") as stream:
+                report = salvage_mcap(log, stream)
+        except OSError as exc:
+            raise OutputError(
+                f"{output}: cannot write the recovered copy of {log} beside it: "
+                f"{exc.strerror or exc}"
+            ) from exc
+        if report.messages == 0 and not report.lost_by_topic:
+            raise SourceError(
+                f"{log}: nothing to recover: not one complete message ({report.describe()})"
+            )
+        try:
+            return _annotate(repaired, log, output, params, options, progress, expected, report)
+        except DoseqslamError as exc:
+            # Messages about the recovered copy are about the log, for whoever reads them.
+            exc.args = (str(exc).replace(str(repaired), str(log)), *exc.args[1:])
+            raise
+
+
+def _annotate(
+    read_path: Path,
+    log: Path,
+    output: Path,
+    params: Parameters,
+    options: AnnotateOptions,
+    progress: Callable[[int], None] | None,
+    expected: Callable[[int | None], None] | None,
+    recovery: SalvageReport | None,
+) -> AnnotateResult:
+    """annotate_log on `read_path`: the log itself, or the copy that --recover made of it."""
     counts = FrameCounts()
     recorder = _TimesRecorder()
-    with open_source(log) as source:
+    with open_source(read_path) as source:
         topic = pick_image_topic(source, options.topic)
+        if recovery is not None and recovery.lost_by_topic.get(topic):
+            lost = recovery.lost_by_topic[topic]
+            counts.messages += lost
+            counts.skip(SKIP_CORRUPT_CHUNK, f"{lost} messages of {topic} in corrupt chunks", lost)
+        if expected is not None:
+            expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
         messages = source.image_messages(topic, options.start_ns, options.end_ns)
         frames = decoded_frames(messages, counts, options.time_source, options.on_error)
-        result = replay(recorder(frames), make_detector(params), progress)
+        try:
+            result = replay(recorder(frames), make_detector(params), progress)
+        except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
+            exc.args = (f"{log}: {exc}", *exc.args[1:])
+            raise
+    if recovery is not None and counts.messages == counts.skipped[SKIP_CORRUPT_CHUNK]:
+        raise SourceError(
+            f"{log}: nothing to recover on {topic}: no complete image message "
+            f"({recovery.describe()})"
+        )
+    if counts.used == 0 and counts.messages > 0:
+        reasons = ", ".join(f"{n} {why}" for why, n in counts.skipped_by_reason().items())
+        first = next(iter(counts.first_skip.values()), "")
+        raise ImageDecodeError(
+            f"{log}: none of the {counts.messages} image messages of {topic} could be used "
+            f"({reasons}); first: {first}"
+        )
     sha256 = source_sha256(log)
-    metadata = run_metadata(params, result, counts, log, sha256, topic, options)
+    metadata = run_metadata(params, result, counts, log, sha256, topic, options, recovery)
     annotations = Annotations.from_decisions(
         result.decisions, recorder.frame_times(), params.method, params.hash, metadata
     )
-    written = write_annotated_mcap(log, output, annotations, sidecar=options.sidecar)
-    return AnnotateResult(log, output, topic, result, counts, written, sha256)
+    written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
+    return AnnotateResult(log, output, topic, result, counts, written, sha256, recovery)
 
 
 def expected_frames(log: str | Path, topic: str | None) -> int | None:

@@ -13,10 +13,13 @@ class ExitCode(IntEnum):
     USAGE = 2  # bad arguments, unreadable config, unknown option value
     UNREADABLE_INPUT = 3  # the input is missing, not a log, or corrupt beyond use
     NO_CAMERA = 4  # the log holds no usable camera channel (or the topic asked for is absent)
-    BAD_IMAGE = 5  # an image could not be decoded and --on-error fail was asked for
+    # A frame could not be used (undecodable image, timestamp before the previous frame) and
+    # --on-error fail was asked for; or not a single image of the camera topic could be decoded.
+    BAD_IMAGE = 5
     OUTPUT_ERROR = 6  # the output could not be written
     INTERNAL = 70  # a bug: please report it (run with --debug for the traceback)
-    INTERRUPTED = 130
+    INTERRUPTED = 130  # SIGINT (Ctrl-C): 128 + 2
+    TERMINATED = 143  # SIGTERM: 128 + 15
 
 
 class DoseqslamError(Exception):
@@ -47,10 +50,24 @@ class NoCameraError(SourceError):
     exit_code = ExitCode.NO_CAMERA
 
 
-class ImageDecodeError(DoseqslamError):
-    """One image message could not be turned into pixels."""
+class TimestampError(SourceError):
+    """A frame is stamped before the previous one and --on-error fail was asked for."""
 
     exit_code = ExitCode.BAD_IMAGE
+
+
+class ImageDecodeError(DoseqslamError):
+    """One image message could not be turned into pixels.
+
+    `problem` names the kind of failure in a few words ("empty image", "corrupt compressed
+    image", ...): runs count skipped frames by it.
+    """
+
+    exit_code = ExitCode.BAD_IMAGE
+
+    def __init__(self, message: str, problem: str = "undecodable image") -> None:
+        super().__init__(message)
+        self.problem = problem
 
 
 class GroundTruthError(UsageError):

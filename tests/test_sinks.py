@@ -501,7 +501,7 @@ def test_ros1_bag_our_messages_deserialize_with_rosbags(shared_data: Path, tmp_p
 
 def db3_messages(folder: Path) -> list[tuple[str, int, int, int, bytes]]:
     """The messages straight from the sqlite3 file, read-only, without rosbags."""
-    uri = f"file:{folder / 'talker.db3'}?mode=ro"
+    uri = f"file:{folder / 'talker.db3'}?mode=ro&immutable=1"
     with sqlite3.connect(uri, uri=True) as db:
         rows = db.execute(
             "SELECT topics.name, timestamp, data FROM messages JOIN topics ON topic_id = topics.id"

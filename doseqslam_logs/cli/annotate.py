@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
-from ..annotate import AnnotateOptions, annotate_log, expected_frames
+from ..annotate import AnnotateOptions, AnnotateResult, annotate_log
 from .params_args import add_parameter_options, parameters_from_args
 from .progress import Progress
 from .times import parse_time_ns
@@ -48,7 +49,13 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         choices=["skip", "fail"],
         default="skip",
         help="an undecodable image or a frame stamped before the previous one: skip and count "
-        "it (default) or stop with an error",
+        "it (default) or stop with an error (exit code 5)",
+    )
+    parser.add_argument(
+        "--recover",
+        action="store_true",
+        help="MCAP input cut short or with corrupt chunks: use every complete message it still "
+        "holds (copied first into a temporary file beside the output) instead of failing",
     )
     parser.add_argument(
         "--sidecar",
@@ -57,6 +64,40 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     )
     add_parameter_options(parser)
     parser.set_defaults(run=run)
+
+
+def summary_line(result: AnnotateResult) -> str:
+    """The one line printed on success: frames, decisions, every skipped frame by reason, and
+    what clock jumps, missing stamps and --recover did."""
+    replay, counts = result.replay, result.counts
+    by_reason = counts.skipped_by_reason()
+    reasons = ", ".join(f"{n} {why}" for why, n in by_reason.items())
+    notes = []
+    if counts.log_time_fallbacks:
+        notes.append(f"{counts.log_time_fallbacks} frames without header stamp used the log time")
+    if counts.clock_jumps:
+        notes.append(f"{counts.clock_jumps} camera clock jumps bridged with the log time")
+    if result.recovery is not None and result.recovery.damaged:
+        notes.append(f"recovered: {result.recovery.describe()}")
+    return (
+        f"{result.output_path}: {replay.frames} frames of {result.topic}, "
+        f"{len(replay.decisions)} sequences, {replay.loop_closures} loop closures, "
+        f"{counts.skipped_total} skipped frames{f' ({reasons})' if reasons else ''}, "
+        f"{replay.wall_time_s:.1f} s, {replay.frames_per_second:.0f} frames/s"
+        + "".join(f"; {note}" for note in notes)
+    )
+
+
+def warnings(result: AnnotateResult) -> list[str]:
+    """The first example of each kind of skipped frame, and of a clock jump (for stderr)."""
+    counts = result.counts
+    lines = [f"skipped ({why}), first: {detail}" for why, detail in counts.first_skip.items()]
+    if counts.first_clock_jump:
+        lines.append(
+            f"camera clock jump bridged with the log time, first: {counts.first_clock_jump} "
+            "(--time-source log uses the log time throughout)"
+        )
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,19 +109,18 @@ def run(args: argparse.Namespace) -> int:
         end_ns=args.end,
         on_error=args.on_error,
         sidecar=args.sidecar,
+        recover=args.recover,
     )
-    progress = Progress(expected_frames(args.log, args.topic), "annotate")
+    progress = Progress(None, "annotate")
+
+    def expected(total: int | None) -> None:
+        progress.total = total
+
     try:
-        result = annotate_log(args.log, args.output, params, options, progress)
+        result = annotate_log(args.log, args.output, params, options, progress, expected)
     finally:
         progress.close()
-    replay = result.replay
-    skipped = result.counts.skipped_total
-    reasons = ", ".join(f"{n} {why}" for why, n in sorted(result.counts.skipped.items()))
-    print(
-        f"{result.output_path}: {replay.frames} frames of {result.topic}, "
-        f"{len(replay.decisions)} sequences, {replay.loop_closures} loop closures, "
-        f"{skipped} skipped frames{f' ({reasons})' if reasons else ''}, "
-        f"{replay.wall_time_s:.1f} s, {replay.frames_per_second:.0f} frames/s"
-    )
+    for line in warnings(result):
+        print(f"doseqslam-logs: warning: {args.log}: {' '.join(line.split())}", file=sys.stderr)
+    print(summary_line(result))
     return 0

@@ -279,7 +279,7 @@ _SPARSE_NPZ_KEYS = {"format", "shape", "data"}
 def _load_npz(file: Path, variable: str | None) -> tuple[Any, str]:
     try:
         with np.load(file, allow_pickle=False) as archive:
-            if _SPARSE_NPZ_KEYS <= set(archive.files) and variable is None:
+            if set(archive.files) >= _SPARSE_NPZ_KEYS and variable is None:
                 return sparse.load_npz(file), "sparse"
             chosen = _pick_variable(file, list(archive.files), variable)
             return archive[chosen], chosen

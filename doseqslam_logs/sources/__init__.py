@@ -80,6 +80,8 @@ def open_source(path: str | Path) -> Source:
     if not path.exists():
         raise SourceError(f"{path}: no such file or directory")
     head = _head(path)
+    if not head and path.is_file():
+        raise SourceError(f"{path}: not a log file: it is empty (0 bytes)")
     for probe, open_format in FORMATS:
         if probe(path, head):
             return open_format(path)

@@ -12,7 +12,13 @@ mapping lives in one place.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import os
+import re
+import sys
+import tempfile
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,8 +30,19 @@ from doseqslam_logs.errors import ImageDecodeError
 from doseqslam_logs.sources.base import ImageKind, ImageMessage
 
 Gray = npt.NDArray[np.uint8]
+
 # Pixel bytes with the row padding cut off: shape (height, width * bytes_per_pixel), uint8.
 Rows = npt.NDArray[np.uint8]
+
+# What went wrong with an image, in a few words: runs count skipped frames by it
+# (`ImageDecodeError.problem`).
+UNDESERIALIZABLE = "undeserializable message"
+UNKNOWN_ENCODING = "unknown encoding"
+EMPTY_IMAGE = "empty image"
+RAW_SIZE_MISMATCH = "raw size mismatch"
+CONVERSION_FAILED = "conversion failed"
+NOT_JPEG_OR_PNG = "not JPEG or PNG"
+CORRUPT_COMPRESSED = "corrupt compressed image"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,7 +149,7 @@ def decode_gray(msg: ImageMessage) -> Gray:
             compressed data is empty, neither JPEG nor PNG, or fails to decode.
     """
     if msg.decode_error is not None:
-        raise ImageDecodeError(msg.decode_error)
+        raise ImageDecodeError(msg.decode_error, UNDESERIALIZABLE)
     gray = _decode_compressed(msg) if msg.kind == "compressed" else _decode_raw(msg)
     out = np.ascontiguousarray(gray, dtype=np.uint8)
     # A view on the message bytes is read-only; callers may want to modify the image in place.
@@ -146,34 +163,45 @@ def _where(msg: ImageMessage) -> str:
 def _decode_raw(msg: ImageMessage) -> Gray:
     layout = RAW_ENCODINGS.get(msg.encoding)
     if layout is None:
-        raise ImageDecodeError(f"{_where(msg)}: unknown raw image encoding {msg.encoding!r}")
+        raise ImageDecodeError(
+            f"{_where(msg)}: unknown raw image encoding {msg.encoding!r}", UNKNOWN_ENCODING
+        )
     rows = _pixel_rows(msg, layout.bytes_per_pixel)
     try:
         return layout.to_gray(rows, msg)
     except cv2.error as exc:
         first_line = str(exc).strip().splitlines()[-1] if str(exc).strip() else "cv2.error"
         raise ImageDecodeError(
-            f"{_where(msg)}: cannot convert {msg.encoding} {msg.width}x{msg.height} ({first_line})"
+            f"{_where(msg)}: cannot convert {msg.encoding} {msg.width}x{msg.height} ({first_line})",
+            CONVERSION_FAILED,
         ) from exc
 
 
 def _pixel_rows(msg: ImageMessage, bytes_per_pixel: int) -> Rows:
     """The pixel bytes as (height, width * bytes_per_pixel), row padding (`step`) removed."""
     width, height, step = msg.width, msg.height, msg.step
+    if not msg.data:
+        raise ImageDecodeError(
+            f"{_where(msg)}: {msg.encoding} image ({width}x{height}) has no data", EMPTY_IMAGE
+        )
     if width <= 0 or height <= 0:
-        raise ImageDecodeError(f"{_where(msg)}: empty {msg.encoding} image ({width}x{height})")
+        raise ImageDecodeError(
+            f"{_where(msg)}: empty {msg.encoding} image ({width}x{height})", EMPTY_IMAGE
+        )
     row_bytes = width * bytes_per_pixel
     if step < row_bytes:
         raise ImageDecodeError(
             f"{_where(msg)}: step {step} is less than width {width} x {bytes_per_pixel} bytes "
-            f"per pixel = {row_bytes} for {msg.encoding}"
+            f"per pixel = {row_bytes} for {msg.encoding}",
+            RAW_SIZE_MISMATCH,
         )
     # The ROS definition is exactly step * rows bytes; any other size means the header and the
     # data disagree (e.g. a mono16 image labelled mono8), so guessing would give garbage pixels.
     if len(msg.data) != height * step:
         raise ImageDecodeError(
             f"{_where(msg)}: {len(msg.data)} data bytes, expected height {height} x step {step} "
-            f"= {height * step} for {msg.encoding}"
+            f"= {height * step} for {msg.encoding}",
+            RAW_SIZE_MISMATCH,
         )
     rows: Rows = np.frombuffer(msg.data, dtype=np.uint8).reshape(height, step)
     return rows[:, :row_bytes]
@@ -181,21 +209,85 @@ def _pixel_rows(msg: ImageMessage, bytes_per_pixel: int) -> Rows:
 
 _COMPRESSED_MAGIC = (b"\xff\xd8\xff", b"\x89PNG")  # JPEG, PNG
 
+# libjpeg and libpng report damage they decode around ("Corrupt JPEG data: premature end of
+# data segment", "bad Huffman code", "libpng error: IDAT: CRC error") by printing to the
+# process's stderr, and OpenCV then returns an image with gray or garbled rows. The text below,
+# captured while decoding, marks such an image as corrupt; any other output (benign warnings
+# such as "Invalid SOS parameters for sequential JPEG") is dropped, never printed.
+_CORRUPTION_SIGNS = ("corrupt", "premature end", "error", "bad huffman")
+# OpenCV's own log lines start "[ERROR:0@0.849] global grfmt_png.cpp:297 readHeader ": the
+# time and the source line vary, the rest says what is wrong.
+_OPENCV_LOG_PREFIX = re.compile(r"^\[\s*\w+:\d+@[\d.]+\]\s*(global\s+\S+\s+\w+\s+)?")
+_STDERR_LOCK = threading.Lock()  # fd 2 is process-wide: one capture at a time
+
+
+_sink: Any = None  # an unnamed temporary file that receives fd 2 while decoding
+
+
+def _stderr_sink() -> Any:
+    global _sink
+    if _sink is None or _sink.closed:
+        _sink = tempfile.TemporaryFile(buffering=0)  # noqa: SIM115 - lives with the process
+    return _sink
+
+
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[list[str]]:
+    """Redirect file descriptor 2 into a temporary file; yields a list that receives the text
+    written meanwhile. Output of other threads in that window is captured too (the decode
+    is short, and nothing else of ours writes to stderr while it runs). Without a usable fd 2
+    (a daemon), nothing is captured."""
+    text: list[str] = []
+    with _STDERR_LOCK:
+        try:
+            sink = _stderr_sink()
+            sink.seek(0)
+            sink.truncate()
+            with contextlib.suppress(AttributeError, ValueError, OSError):
+                sys.stderr.flush()
+            saved = os.dup(2)
+        except OSError:
+            yield text
+            return
+        try:
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield text
+            finally:
+                os.dup2(saved, 2)
+        finally:
+            os.close(saved)
+        sink.seek(0)
+        text.append(sink.read(4096).decode("utf-8", "replace"))
+
 
 def _decode_compressed(msg: ImageMessage) -> Gray:
     what = f"{_where(msg)}: compressed image (format {msg.encoding!r})"
     if not msg.data:
-        raise ImageDecodeError(f"{what} has no data")
+        raise ImageDecodeError(f"{what} has no data", EMPTY_IMAGE)
     if not msg.data.startswith(_COMPRESSED_MAGIC):
         raise ImageDecodeError(
-            f"{what} is neither JPEG nor PNG (starts with {msg.data[:8].hex(' ')})"
+            f"{what} is neither JPEG nor PNG (starts with {msg.data[:8].hex(' ')})",
+            NOT_JPEG_OR_PNG,
         )
-    try:
-        gray = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
-    except cv2.error as exc:
-        raise ImageDecodeError(f"{what} could not be decoded") from exc
+    with _captured_stderr() as output:
+        try:
+            gray = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+        except cv2.error as exc:
+            raise ImageDecodeError(f"{what} could not be decoded", CORRUPT_COMPRESSED) from exc
+    complaint = next(
+        (
+            _OPENCV_LOG_PREFIX.sub("", line).strip()
+            for line in "".join(output).splitlines()
+            if any(sign in line.lower() for sign in _CORRUPTION_SIGNS)
+        ),
+        None,
+    )
+    because = f" ({complaint})" if complaint else ""
     if gray is None or gray.ndim != 2 or gray.size == 0:
-        raise ImageDecodeError(f"{what} could not be decoded")
+        raise ImageDecodeError(f"{what} could not be decoded{because}", CORRUPT_COMPRESSED)
+    if complaint is not None:  # decoded around the damage: gray or garbled rows
+        raise ImageDecodeError(f"{what} is corrupt{because}", CORRUPT_COMPRESSED)
     return np.asarray(gray, dtype=np.uint8)
 
 

@@ -3,15 +3,21 @@
 Indexed files (a summary with chunk indexes) are read chunk by chunk in log-time order, so a time
 range only touches the chunks that overlap it. Files without an index (written without chunks, or
 with the summary switched off) are streamed from the start; see `McapSource.image_messages` for how
-their order is restored. A file cut short (no footer) is streamed too, and raises SourceError when
-the reader reaches the cut: a truncated log is reported, not silently shortened.
+their order is restored.
+
+Damage is reported, never read around: a file cut short (it does not end with a footer and the
+magic) raises SourceError as soon as it is listed or read, a chunk whose CRC does not match its
+data raises SourceError when it is read, and records are never trusted to be larger than the
+file. `salvage.salvage_mcap` (annotate --recover) is the way to use what such a file still holds.
 """
 
 from __future__ import annotations
 
 import base64
+import contextlib
 import heapq
 import inspect
+import io
 import json
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -19,10 +25,10 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import IO, Any
 
-from mcap.exceptions import EndOfFile
-from mcap.reader import McapReader, NonSeekingReader, SeekingReader, make_reader
+from mcap.exceptions import EndOfFile, InvalidMagic, RecordLengthLimitExceeded
+from mcap.reader import McapReader, NonSeekingReader, SeekingReader
 from mcap.records import Channel, Message, MessageIndex, Schema
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.summary import Summary
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
@@ -39,6 +45,10 @@ REORDER_WINDOW = 64
 
 # mcap 1.6 renamed the time bounds (start_time/end_time still work but warn).
 _NEW_TIME_NAMES = "starting_at" in inspect.signature(SeekingReader.iter_messages).parameters
+
+MAGIC = b"\x89MCAP0\r\n"
+_FOOTER = b"\x02" + (20).to_bytes(8, "little")  # opcode and length of the footer record
+RECOVER_HINT = "annotate --recover uses every complete message it holds"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -147,7 +157,9 @@ def _type_name(schemas: dict[int, Schema], channel: Channel) -> str:
     return schema.name if schema is not None else ""
 
 
-def _stats_from_index(file: IO[bytes], summary: Summary) -> list[_ChannelStats] | None:
+def _stats_from_index(
+    file: IO[bytes], summary: Summary, size_limit: int
+) -> list[_ChannelStats] | None:
     """Counts and first/last times from the message index records, without reading any chunk;
     None when the file has no message indexes."""
     chunks = summary.chunk_indexes
@@ -160,7 +172,7 @@ def _stats_from_index(file: IO[bytes], summary: Summary) -> list[_ChannelStats] 
     for chunk in chunks:
         for cid, offset in chunk.message_index_offsets.items():
             file.seek(offset)
-            index = next(StreamReader(file, skip_magic=True).records)
+            index = next(StreamReader(file, skip_magic=True, record_size_limit=size_limit).records)
             if not isinstance(index, MessageIndex) or cid not in stats:
                 return None
             stats[cid].add_times(time for time, _ in index.records)
@@ -170,18 +182,21 @@ def _stats_from_index(file: IO[bytes], summary: Summary) -> list[_ChannelStats] 
     return list(stats.values())
 
 
-def _stats_from_stream(file: IO[bytes]) -> list[_ChannelStats]:
+def _stats_from_stream(file: IO[bytes], size_limit: int) -> list[_ChannelStats]:
     """Counts and first/last times by one pass over every record (chunks are decompressed one
     at a time, so memory stays at one chunk)."""
     file.seek(0)
     schemas: dict[int, Schema] = {}
     stats: dict[int, _ChannelStats] = {}
-    for record in StreamReader(file).records:
+    reader = StreamReader(file, validate_crcs=True, record_size_limit=size_limit)
+    for record in reader.records:
         if isinstance(record, Schema):
             schemas[record.id] = record
         elif isinstance(record, Channel) and record.id not in stats:
             stats[record.id] = _ChannelStats(record, _type_name(schemas, record))
         elif isinstance(record, Message):
+            if record.channel_id not in stats:
+                raise ValueError(f"a message refers to the unknown channel {record.channel_id}")
             stats[record.channel_id].add_times((record.log_time,))
     return list(stats.values())
 
@@ -242,10 +257,34 @@ def in_log_time_order(records: Iterable[_Record], window: int) -> Iterator[_Reco
         yield heapq.heappop(heap)[2]
 
 
-def _describe(exc: BaseException) -> str:
+def describe_read_error(exc: BaseException) -> str:
+    """One line saying what is wrong with the file, from an exception of the mcap library (or
+    of a decompressor, struct, ...) raised while reading it."""
     if isinstance(exc, EndOfFile):
         return "the file ends in the middle of a record: truncated?"
-    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+    if isinstance(exc, CRCValidationError):
+        return f"a {type(exc.record).__name__.lower()} fails its CRC check: the file is corrupt"
+    if isinstance(exc, RecordLengthLimitExceeded):
+        return "a record claims to be larger than the file: the file is corrupt"
+    if isinstance(exc, InvalidMagic):
+        return "the MCAP magic is missing where it belongs: the file is corrupt"
+    if isinstance(exc, MemoryError):
+        return "a record claims an impossible size: the file is corrupt"
+    text = " ".join(str(exc).split())
+    if len(text) > 200:
+        text = text[:200] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def is_complete(file: IO[bytes]) -> bool:
+    """Whether the file ends with a footer record and the closing magic, as every finished
+    MCAP does; a recording cut short (power loss, full disk, killed recorder) does not."""
+    size = file.seek(0, 2)
+    if size < 2 * len(MAGIC) + 29:
+        return False
+    file.seek(size - len(MAGIC) - 29)
+    tail = file.read(29 + len(MAGIC))
+    return tail.endswith(MAGIC) and tail.startswith(_FOOTER)
 
 
 class McapSource:
@@ -262,6 +301,8 @@ class McapSource:
         except OSError as exc:
             raise SourceError(f"{self.path}: cannot open ({exc.strerror or exc})") from exc
         try:
+            self.size = self._file.seek(0, 2)
+            self.complete = is_complete(self._file)
             self._summary = self._read_summary()
         except BaseException:
             self._file.close()
@@ -269,17 +310,32 @@ class McapSource:
         self._channels: list[ChannelInfo] | None = None
         self._deserializers: dict[tuple[int, str], Deserializer] = {}
 
+    def _reader(self, file: IO[bytes]) -> SeekingReader:
+        return SeekingReader(file, validate_crcs=True, record_size_limit=max(self.size, 1))
+
     def _read_summary(self) -> Summary | None:
         try:
-            reader = make_reader(self._file)
+            self._file.seek(0)
+            reader = self._reader(self._file)
         except Exception as exc:
-            raise SourceError(f"{self.path}: not an MCAP file ({_describe(exc)})") from exc
+            raise SourceError(
+                f"{self.path}: not an MCAP file ({describe_read_error(exc)})"
+            ) from exc
+        if not self.complete:
+            return None  # cut short: channels() and image_messages() say so
         try:
             summary: Summary | None = reader.get_summary()
-        # No readable footer (the recording was cut short): streaming still reads what is there.
+        # A damaged summary: streaming still reads the data section.
         except Exception:
             return None
         return summary
+
+    def _check_complete(self) -> None:
+        if not self.complete:
+            raise SourceError(
+                f"{self.path}: truncated MCAP file: it ends after {self.size} bytes without a "
+                f"footer (recording cut short?); {RECOVER_HINT}"
+            )
 
     @property
     def indexed(self) -> bool:
@@ -295,14 +351,19 @@ class McapSource:
         Raises:
             SourceError: the file is corrupt or truncated.
         """
+        self._check_complete()
         if self._channels is None:
+            limit = max(self.size, 1)
             try:
-                stats = _stats_from_index(self._file, self._summary) if self._summary else None
+                stats = None
+                if self._summary:
+                    stats = _stats_from_index(self._file, self._summary, limit)
                 if stats is None:
-                    stats = _stats_from_stream(self._file)
+                    stats = _stats_from_stream(self._file, limit)
             except Exception as exc:
                 raise SourceError(
-                    f"{self.path}: cannot list the channels ({_describe(exc)})"
+                    f"{self.path}: cannot list the channels ({describe_read_error(exc)}); "
+                    f"{RECOVER_HINT}"
                 ) from exc
             self._channels = _group_by_topic(stats)
         return list(self._channels)
@@ -344,16 +405,18 @@ class McapSource:
             raise
         except Exception as exc:
             raise SourceError(
-                f"{self.path}: cannot read the messages of {topic} ({_describe(exc)})"
+                f"{self.path}: cannot read the messages of {topic} ({describe_read_error(exc)}); "
+                f"{RECOVER_HINT}"
             ) from exc
 
     def _records(
         self, file: IO[bytes], topic: str, start_ns: int | None, end_ns: int | None
     ) -> Iterator[_Record]:
         if self.indexed:
-            return _iter_topic(SeekingReader(file), topic, start_ns, end_ns, ordered=True)
+            return _iter_topic(self._reader(file), topic, start_ns, end_ns, ordered=True)
         # NonSeekingReader with log_time_order=True would sort the whole file in memory.
-        stream = _iter_topic(NonSeekingReader(file), topic, start_ns, end_ns, ordered=False)
+        reader = NonSeekingReader(file, validate_crcs=True, record_size_limit=max(self.size, 1))
+        stream = _iter_topic(reader, topic, start_ns, end_ns, ordered=False)
         return in_log_time_order(stream, REORDER_WINDOW)
 
     def _to_image(self, schema: Schema, channel: Channel, message: Message) -> ImageMessage:
@@ -373,11 +436,13 @@ class McapSource:
                     f"which is not supported (supported: {supported})"
                 )
             try:
-                self._deserializers[key] = build(schema)
+                # mcap_ros2's message parser prints its complaint before raising it.
+                with contextlib.redirect_stderr(io.StringIO()):
+                    self._deserializers[key] = build(schema)
             except Exception as exc:
                 raise SourceError(
                     f"{self.path}: cannot parse the {schema.encoding} schema {schema.name} of "
-                    f"{channel.topic} ({_describe(exc)})"
+                    f"{channel.topic} ({describe_read_error(exc)})"
                 ) from exc
         return self._deserializers[key]
 

@@ -21,6 +21,18 @@ if TYPE_CHECKING:
     from rosbags.interfaces import Connection
 
 ROS1_MAGIC = b"#ROSBAG V2.0"
+REINDEX_HINT = (
+    "a bag whose recording never finished (or was cut short) has no index: "
+    "`rosbag reindex` it (ROS 1 tools) and try again"
+)
+
+
+def _one_line(exc: BaseException) -> str:
+    """`Type: message` on one line, cut at 200 characters."""
+    text = " ".join(str(exc).split())
+    if len(text) > 200:
+        text = text[:200] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def _check_layout(path: Path) -> None:
@@ -56,7 +68,8 @@ def _open_reader(path: Path) -> AnyReader:
         reader = AnyReader([path], default_typestore=fallback)
         reader.open()
     except Exception as exc:  # rosbags, sqlite (apsw), YAML, OS and decompression errors
-        raise SourceError(f"{path}: cannot open as a {kind} ({type(exc).__name__}: {exc})") from exc
+        hint = f"; {REINDEX_HINT}" if is_ros1 and "index" in str(exc).lower() else ""
+        raise SourceError(f"{path}: cannot open as a {kind} ({_one_line(exc)}){hint}") from exc
     return reader
 
 
@@ -152,7 +165,7 @@ class RosbagsSource:
         except Exception as exc:
             raise SourceError(
                 f"{self.path}: cannot read the messages of {connections[0].topic} "
-                f"({type(exc).__name__}: {exc})"
+                f"({_one_line(exc)})"
             ) from exc
 
     def _deserializer(self, msgtype: str) -> Callable[[bytes], Any]:

@@ -1,0 +1,30 @@
+"""Geometric verification of loop-closure pairs (issue #5): pure computation, no file I/O.
+
+After the detector, each (query, match) pair is checked with local features, a ratio test and
+a robust fundamental-matrix fit (essential matrix and relative pose when intrinsics are known).
+"""
+
+from __future__ import annotations
+
+from .geometry import (
+    FrameFeatures,
+    Intrinsics,
+    Verdict,
+    best_verdict,
+    extract_features,
+    refine_match,
+    verify_pair,
+)
+from .params import DEFAULT_VERIFICATION, VerificationParameters
+
+__all__ = [
+    "DEFAULT_VERIFICATION",
+    "FrameFeatures",
+    "Intrinsics",
+    "Verdict",
+    "VerificationParameters",
+    "best_verdict",
+    "extract_features",
+    "refine_match",
+    "verify_pair",
+]

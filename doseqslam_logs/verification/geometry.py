@@ -1,0 +1,352 @@
+"""Geometric verification of a loop-closure pair: local features, ratio test, robust epipolar fit.
+
+Pure computation: gray frames in, verdicts out. Features are extracted once per frame
+(`extract_features`, cacheable), then any pair is checked with `verify_pair`: descriptors are
+matched with Lowe's ratio test (one match per feature of the match frame), and a fundamental
+matrix (or, with intrinsics, an essential matrix) is fitted robustly; the pair is accepted when
+the inliers reach `min_inliers`. With intrinsics the relative pose (rotation, direction of
+translation) comes from the essential matrix by cv2.recoverPose.
+
+Determinism: OpenCV 5.0's RANSAC (FM_RANSAC, RANSAC) and USAC (USAC_MAGSAC) seed their own
+random generators on every call (measured: the global cv::RNG state changes nothing), and the
+features are put in a canonical order, so the same two frames give the same verdict on every
+run. The thread's cv::RNG is still re-seeded before each fit (`_FIT_SEED`), so that a build
+drawing from it would stay deterministic; callers relying on cv::theRNG() should know that.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ..detector.segmentation import shrink
+from .params import VerificationParameters
+
+GrayImage = npt.NDArray[np.uint8]
+Points = npt.NDArray[np.float32]
+Model = Literal["F", "E"]
+
+# Minimal sample sizes: 7-point fundamental matrix (8 for FM_RANSAC's check), 5-point essential.
+_MIN_POINTS: dict[Model, int] = {"F": 8, "E": 5}
+_FACTORIES = {
+    "sift": "SIFT_create",
+    "orb": "ORB_create",
+    "akaze": "AKAZE_create",
+    "brisk": "BRISK_create",
+}
+_FIT_SEED = 0
+_DESCRIPTOR_BYTES = {"sift": 128, "orb": 32, "akaze": 61, "brisk": 64}
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of the original (unshrunk) frame, in pixels; no distortion."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        values = (self.fx, self.fy, self.cx, self.cy)
+        if not all(math.isfinite(v) for v in values) or self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"intrinsics need finite values and fx, fy > 0, got {values}")
+
+    def matrix(self) -> npt.NDArray[np.float64]:
+        """The 3x3 camera matrix K."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], np.float64)
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class FrameFeatures:
+    """One frame's local features, compact enough to cache for every frame of a log.
+
+    `keypoints` is N x 2 float32 (x, y) in pixels of the original frame; `descriptors` is
+    N x D uint8: ORB 32, BRISK 64, AKAZE 61 bytes, SIFT 128 (OpenCV's SIFT values are integers
+    in 0..255, so uint8 is lossless). Per frame that is N * (8 + D) bytes (`nbytes`) plus about
+    400 bytes of Python objects: at most 40 kB with the default 1000 ORB features, 136 kB for
+    1000 SIFT features. Features are sorted by detector response (strongest first), ties by
+    position: a canonical order.
+    """
+
+    keypoints: Points
+    descriptors: npt.NDArray[np.uint8]
+    detector: str
+    scale: float  # feature-image pixels per original pixel (<= 1)
+
+    @property
+    def count(self) -> int:
+        return int(self.keypoints.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the two arrays."""
+        return int(self.keypoints.nbytes + self.descriptors.nbytes)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The outcome of checking one (query, match) pair.
+
+    `inliers` counts the correspondences consistent with the fitted model (0 when no model was
+    fitted; for "E" the RANSAC inliers, before recoverPose's chirality check); `matches_tested`
+    the ratio-test matches given to the robust fit (0 when a frame had too few features).
+
+    The pose fields are set only when intrinsics were given and the pair was accepted:
+    `rotation_xyzw` is the unit quaternion (x, y, z, w) of R and `translation_direction` the
+    unit vector t, with X_match = R X_query + t for a 3-D point X in each camera's frame
+    (cv2.recoverPose with the query as the first view); `rotation_deg` is the angle of R.
+    """
+
+    accepted: bool
+    inliers: int
+    matches_tested: int
+    model: Model
+    reason: str  # "accepted", "too few features", "too few matches", "no model", "too few inliers"
+    rotation_xyzw: tuple[float, float, float, float] | None = None
+    rotation_deg: float | None = None
+    translation_direction: tuple[float, float, float] | None = None
+
+
+def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFeatures:
+    """Detect and describe the strongest `params.max_features` features of a gray frame.
+
+    A flat or empty frame gives zero features (not an error).
+
+    Raises:
+        ValueError: `gray` is not a 2-D uint8 array.
+    """
+    if not isinstance(gray, np.ndarray) or gray.ndim != 2 or gray.dtype != np.uint8:
+        raise ValueError("extract_features needs a 2-D uint8 gray image")
+    if gray.size == 0:
+        return _empty_features(params, 1.0)
+    small = shrink(gray, params.image_max_side)
+    # Per axis: shrink rounds each side separately, so the two ratios differ by < 1 px.
+    scale_xy = np.array([small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]])
+    scale = float(scale_xy.min())
+    keypoints, descriptors = _make_extractor(params).detectAndCompute(small, None)
+    if descriptors is None or len(keypoints) == 0:
+        return _empty_features(params, scale)
+    xy = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2)
+    response = np.array([k.response for k in keypoints], dtype=np.float64)
+    # Strongest first; position breaks ties so the order never depends on detector internals.
+    order = np.lexsort((xy[:, 1], xy[:, 0], -response))[: params.max_features]
+    # Pixel centres: x_original = (x_small + 0.5) / scale - 0.5 (cv2.resize's convention).
+    original = (xy[order] + 0.5) / scale_xy - 0.5
+    return FrameFeatures(
+        keypoints=np.ascontiguousarray(original, dtype=np.float32),
+        descriptors=np.ascontiguousarray(descriptors[order], dtype=np.uint8),
+        detector=params.feature_detector,
+        scale=scale,
+    )
+
+
+def verify_pair(
+    query: FrameFeatures,
+    match: FrameFeatures,
+    params: VerificationParameters,
+    intrinsics: Intrinsics | None = None,
+) -> Verdict:
+    """Check that two frames see the same place: ratio-test matches, then a robust F or E fit.
+
+    Degenerate inputs (too few features or matches, a fit that fails) give a rejected verdict.
+
+    Raises:
+        ValueError: the two frames' features come from different detectors (or descriptor
+            widths).
+    """
+    if (
+        query.detector != match.detector
+        or query.descriptors.shape[1:] != match.descriptors.shape[1:]
+    ):
+        raise ValueError(f"cannot match {query.detector} features against {match.detector}")
+    model: Model = "F" if intrinsics is None else "E"
+    needed = max(_MIN_POINTS[model], params.min_inliers)
+    if min(query.count, match.count) < needed:
+        return Verdict(False, 0, 0, model, "too few features")
+    q_index, m_index = _ratio_matches(query, match, params.ratio)
+    tested = int(q_index.size)
+    if tested < needed:  # cannot reach min_inliers: skip the robust fit
+        return Verdict(False, 0, tested, model, "too few matches")
+    p_query, p_match = query.keypoints[q_index], match.keypoints[m_index]
+    # The threshold is in feature-image pixels; keypoints are in original pixels.
+    threshold = params.ransac_threshold_px / min(query.scale, match.scale)
+    if intrinsics is None:
+        inliers = _fundamental_inliers(p_query, p_match, threshold, params)
+        return _verdict(inliers, tested, model, params)
+    return _essential_verdict(p_query, p_match, threshold, tested, params, intrinsics)
+
+
+def refine_match(
+    query: FrameFeatures,
+    candidates: Sequence[tuple[int, FrameFeatures]],
+    params: VerificationParameters,
+    intrinsics: Intrinsics | None = None,
+    *,
+    original: int | None = None,
+) -> tuple[int, Verdict]:
+    """Verify `query` against each (frame index, features) and keep the frame with most inliers.
+
+    Ties go to `original` (the detector's match) when it is among the candidates, then to the
+    lower frame index (`best_verdict`). The caller chooses the frames, e.g. the detector's
+    match +- `params.refine_radius`, clipped to the sequence's database.
+
+    Raises:
+        ValueError: `candidates` is empty, or features come from different detectors.
+    """
+    verdicts = [(i, verify_pair(query, features, params, intrinsics)) for i, features in candidates]
+    return best_verdict(verdicts, original)
+
+
+def best_verdict(
+    verdicts: Sequence[tuple[int, Verdict]], original: int | None = None
+) -> tuple[int, Verdict]:
+    """The (frame index, verdict) with the most inliers; ties: `original`, then the lower index.
+
+    Inliers rank the frames whether or not they reach `min_inliers`, so the choice of frame
+    does not depend on the acceptance threshold.
+
+    Raises:
+        ValueError: `verdicts` is empty.
+    """
+    if not verdicts:
+        raise ValueError("refine_match needs at least one candidate frame")
+    return min(verdicts, key=lambda item: (-item[1].inliers, item[0] != original, item[0]))
+
+
+# -- features -----------------------------------------------------------------------------
+
+
+def _make_extractor(params: VerificationParameters) -> Any:
+    """A fresh OpenCV feature object (cheap to create; not shared, so callers may use threads)."""
+    name, budget = params.feature_detector, params.max_features
+    # cv2's type stubs lack the factories; AKAZE/BRISK live in cv2.xfeatures2d in OpenCV 5.
+    factory: Any = getattr(cv2, _FACTORIES[name], None) or getattr(
+        cv2.xfeatures2d, _FACTORIES[name]
+    )
+    if name in ("sift", "orb"):
+        return factory(nfeatures=budget)
+    return factory()  # no feature budget: extract_features keeps the strongest
+
+
+def _empty_features(params: VerificationParameters, scale: float) -> FrameFeatures:
+    return FrameFeatures(
+        keypoints=np.empty((0, 2), np.float32),
+        descriptors=np.empty((0, _DESCRIPTOR_BYTES[params.feature_detector]), np.uint8),
+        detector=params.feature_detector,
+        scale=scale,
+    )
+
+
+def _ratio_matches(
+    query: FrameFeatures, match: FrameFeatures, ratio: float
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Indices of ratio-test matches, at most one per match-frame feature (the closest).
+
+    Many-to-one matches (repeated texture, e.g. a corridor's doors) would each count as an
+    inlier of the same point; keeping one per feature stops them inflating the count.
+    """
+    a: npt.NDArray[Any] = query.descriptors
+    b: npt.NDArray[Any] = match.descriptors
+    norm = cv2.NORM_HAMMING
+    if query.detector == "sift":  # float L2 is faster than OpenCV's uint8 L2 path
+        norm, a, b = cv2.NORM_L2, a.astype(np.float32), b.astype(np.float32)
+    pairs = cv2.BFMatcher(norm).knnMatch(a, b, k=2)
+    best: dict[int, tuple[float, int]] = {}  # match feature -> (distance, query feature)
+    for pair in pairs:
+        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
+            kept = best.get(pair[0].trainIdx)
+            if kept is None or pair[0].distance < kept[0]:
+                best[pair[0].trainIdx] = (pair[0].distance, pair[0].queryIdx)
+    m_index = np.array(sorted(best), dtype=np.int64)
+    q_index = np.array([best[int(m)][1] for m in m_index], dtype=np.int64)
+    return q_index, m_index
+
+
+# -- robust fits --------------------------------------------------------------------------
+
+
+def _fundamental_inliers(
+    p_query: Points, p_match: Points, threshold: float, params: VerificationParameters
+) -> int:
+    """Inliers of a robust fundamental-matrix fit (0 when OpenCV finds no model)."""
+    method = cv2.FM_RANSAC if params.method == "ransac" else cv2.USAC_MAGSAC
+    cv2.setRNGSeed(_FIT_SEED)
+    try:
+        fundamental, mask = cv2.findFundamentalMat(
+            p_query, p_match, method, threshold, params.confidence, params.max_iterations
+        )
+    except cv2.error:  # degenerate configurations (e.g. all points equal) raise in some paths
+        return 0
+    if fundamental is None or mask is None or fundamental.shape != (3, 3):
+        return 0
+    return int(np.count_nonzero(mask))
+
+
+def _essential_verdict(
+    p_query: Points,
+    p_match: Points,
+    threshold: float,
+    tested: int,
+    params: VerificationParameters,
+    intrinsics: Intrinsics,
+) -> Verdict:
+    """Robust essential-matrix fit, then the relative pose of the accepted pairs."""
+    method = cv2.RANSAC if params.method == "ransac" else cv2.USAC_MAGSAC
+    k = intrinsics.matrix()
+    cv2.setRNGSeed(_FIT_SEED)
+    try:
+        essential, mask = cv2.findEssentialMat(
+            p_query, p_match, k, method, params.confidence, threshold, params.max_iterations
+        )
+    except cv2.error:
+        return Verdict(False, 0, tested, "E", "no model")
+    if essential is None or mask is None or essential.shape[0] < 3:
+        return Verdict(False, 0, tested, "E", "no model")
+    verdict = _verdict(int(np.count_nonzero(mask)), tested, "E", params)
+    if not verdict.accepted:
+        return verdict
+    return _with_pose(verdict, np.asarray(essential[:3], np.float64), p_query, p_match, k, mask)
+
+
+def _with_pose(
+    verdict: Verdict,
+    essential: npt.NDArray[np.float64],
+    p_query: Points,
+    p_match: Points,
+    k: npt.NDArray[np.float64],
+    mask: npt.NDArray[Any],
+) -> Verdict:
+    """Add R and the direction of t (chirality check over the RANSAC inliers)."""
+    try:
+        _, rotation, translation, _ = cv2.recoverPose(essential, p_query, p_match, k, mask=mask)
+    except cv2.error:
+        return verdict
+    rvec, _ = cv2.Rodrigues(rotation)
+    angle = float(np.linalg.norm(rvec))
+    axis = rvec.ravel() / angle if angle > 0 else np.zeros(3)
+    xyz = axis * math.sin(angle / 2)
+    direction = translation.ravel() / max(float(np.linalg.norm(translation)), 1e-12)
+    return Verdict(
+        accepted=verdict.accepted,
+        inliers=verdict.inliers,
+        matches_tested=verdict.matches_tested,
+        model="E",
+        reason=verdict.reason,
+        rotation_xyzw=(float(xyz[0]), float(xyz[1]), float(xyz[2]), math.cos(angle / 2)),
+        rotation_deg=math.degrees(angle),
+        translation_direction=(float(direction[0]), float(direction[1]), float(direction[2])),
+    )
+
+
+def _verdict(inliers: int, tested: int, model: Model, params: VerificationParameters) -> Verdict:
+    if inliers == 0:
+        return Verdict(False, 0, tested, model, "no model")
+    accepted = inliers >= params.min_inliers
+    return Verdict(accepted, inliers, tested, model, "accepted" if accepted else "too few inliers")
