@@ -52,6 +52,9 @@ class AnnotateOptions:
     # output (see sources.salvage) and annotate that: a truncated or corrupt file then gives
     # what it still holds instead of an error. Other inputs: no effect.
     recover: bool = False
+    # Threads that prepare frames (frame vectors, features) ahead of the detector; the output
+    # does not depend on it.
+    workers: int = 2
 
 
 @dataclass(frozen=True)
@@ -209,7 +212,8 @@ def _annotate(
         messages = source.image_messages(topic, options.start_ns, options.end_ns)
         frames = decoded_frames(messages, counts, options.time_source, options.on_error)
         try:
-            result = replay(recorder(frames), make_detector(params), progress)
+            detector = make_detector(params)
+            result = replay(recorder(frames), detector, progress, options.workers)
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise

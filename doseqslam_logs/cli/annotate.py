@@ -12,6 +12,14 @@ from .progress import Progress
 from .times import parse_time_ns
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "annotate",
@@ -56,6 +64,14 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         action="store_true",
         help="MCAP input cut short or with corrupt chunks: use every complete message it still "
         "holds (copied first into a temporary file beside the output) instead of failing",
+    )
+    parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=2,
+        metavar="N",
+        help="threads that prepare frames (features) ahead of the detector (default 2); the "
+        "output is the same for any N",
     )
     parser.add_argument(
         "--sidecar",
@@ -110,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         on_error=args.on_error,
         sidecar=args.sidecar,
         recover=args.recover,
+        workers=args.workers,
     )
     progress = Progress(None, "annotate")
 
