@@ -1,0 +1,33 @@
+"""The installed package holds every subpackage and every message definition."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from doseqslam_logs.schema_files import read_schema
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_every_subpackage_is_listed_in_pyproject() -> None:
+    """pyproject lists packages explicitly (schemas/ is mapped in): a new one must be added."""
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())
+    listed = set(config["tool"]["setuptools"]["packages"])
+    found = {
+        ".".join(init.parent.relative_to(REPO).parts)
+        for init in (REPO / "doseqslam_logs").rglob("__init__.py")
+    }
+    assert found <= listed, f"add to pyproject.toml: {sorted(found - listed)}"
+
+
+def test_message_definitions_are_readable_from_the_package() -> None:
+    for name in ("LoopClosure", "Sequence"):
+        assert "float64 f" in read_schema(f"ros2/{name}.msg")
+        assert "float64 f" in read_schema(f"ros1/{name}.msg")
+        assert '"f"' in read_schema(f"json/{name}.json")
