@@ -328,27 +328,43 @@ def test_annotate_as_a_process(
 # Runs the CLI with every mcap write slowed down, so that a signal surely arrives mid-write.
 SLOW_WRITER = textwrap.dedent(
     """
-    import sys, time
+    import os, sys, time
     from mcap.writer import Writer
     from doseqslam_logs.cli.main import main
 
-    original = Writer.add_message
-    def slow(self, *args, **kwargs):
-        time.sleep(0.1)
-        return original(self, *args, **kwargs)
-    Writer.add_message = slow
+    # The BLOCK_WRITER-th MCAP writer of the run (1: the first output or --recover's copy of
+    # the input, 2: the output after that copy) blocks at its first message until a signal
+    # ends the process: the signal always lands mid-write, however loaded the machine is.
+    block = int(os.environ["BLOCK_WRITER"])
+    writers = []
+    original_init, original_add = Writer.__init__, Writer.add_message
+
+    def init(self, *args, **kwargs):
+        writers.append(self)
+        original_init(self, *args, **kwargs)
+
+    def add(self, *args, **kwargs):
+        if writers.index(self) + 1 >= block:
+            while True:
+                time.sleep(0.05)
+        return original_add(self, *args, **kwargs)
+
+    Writer.__init__, Writer.add_message = init, add
     sys.exit(main(sys.argv[1:]))
     """
 )
 
 
-def start_slow_annotate(log: Path, output: Path, *extra: str) -> subprocess.Popen[str]:
+def start_slow_annotate(
+    log: Path, output: Path, *extra: str, block_writer: int = 1
+) -> subprocess.Popen[str]:
     argv = ["annotate", str(log), "-o", str(output), *extra]
     return subprocess.Popen(
         [sys.executable, "-c", SLOW_WRITER, *argv],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        env={**os.environ, "BLOCK_WRITER": str(block_writer)},
     )
 
 
@@ -361,7 +377,7 @@ def wait_for_temps(
     while True:
         temps = [p for p in folder.iterdir() if p.name.startswith(f".{name}.")]
         if len(temps) >= count:
-            time.sleep(0.2)  # well into the write: each add_message takes 0.1 s
+            time.sleep(0.2)  # the writer is blocked at its first message by now
             return temps
         assert process.poll() is None, "the run ended before it could be stopped"
         assert time.monotonic() < deadline, "the run never started writing"
@@ -408,7 +424,7 @@ def test_sigterm_and_sigint_mid_write_clean_up(
     log, output = corpus["truncated_chunk"], tmp_path / "out.mcap"
     before = sha256(log)
     # --recover: its temporary copy of the input must go too.
-    process = start_slow_annotate(log, output, "--recover")
+    process = start_slow_annotate(log, output, "--recover", block_writer=temps)
     try:
         wait_for_temps(process, tmp_path, output.name, temps)
         process.send_signal(sig)
