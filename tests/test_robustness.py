@@ -530,3 +530,47 @@ def test_log_times_out_of_order_do_not_look_like_clock_jumps() -> None:
     msgs = [message(100, 10), message(80, 10.5), message(101, 11)]
     counts = FrameCounts()
     assert len(list(decoded_frames(msgs, counts))) == 3 and counts.clock_jumps == 0
+
+
+def test_a_corrupt_chunk_of_another_topic_is_not_copied_as_if_sound(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    """The camera chunks are sound; the chunk of another topic fails its CRC. The copy of the
+    input must notice (exit 3, --recover suggested), not rewrite it under a fresh valid CRC."""
+    import base64
+
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    jpeg = (shared_data / "rtabmap_samples_loop" / "images" / "1.jpg").read_bytes()
+    log = tmp_path / "other_topic_crc.mcap"
+    with log.open("wb") as stream:
+        writer = Writer(stream, compression=CompressionType.NONE)
+        writer.start(profile="", library="test")
+        image = writer.register_schema("foxglove.CompressedImage", "jsonschema", b"{}")
+        other = writer.register_schema("note", "jsonschema", b"{}")
+        cam = writer.register_channel("/cam", "json", image)
+        notes = writer.register_channel("/notes", "json", other)
+
+        def frame(i: int) -> bytes:
+            doc = {"timestamp": {"sec": i, "nsec": 0}, "frame_id": "c", "format": "jpeg",
+                   "data": base64.b64encode(jpeg).decode()}
+            return json.dumps(doc).encode()
+
+        for i in range(3):
+            writer.add_message(cam, i * 10**9, frame(i), i * 10**9)
+        writer.flush()  # end the camera chunk
+        writer.add_message(notes, 3 * 10**9, b'{"text": "hello"}', 3 * 10**9)
+        writer.flush()
+        for i in range(4, 7):
+            writer.add_message(cam, i * 10**9, frame(i), i * 10**9)
+        writer.finish()
+    with log.open("rb") as stream:
+        chunks = make_reader(stream).get_summary().chunk_indexes
+    notes_chunk = next(c for c in chunks if c.message_start_time == 3 * 10**9)
+    data = bytearray(log.read_bytes())
+    data[notes_chunk.chunk_start_offset + 33] ^= 0xFF  # the chunk's uncompressed CRC
+    log.write_bytes(bytes(data))
+    output = tmp_path / "out.mcap"
+    code = main(["annotate", str(log), "-o", str(output), "--set", "kappa_s=1"])
+    assert code == ExitCode.UNREADABLE_INPUT and not output.exists()

@@ -317,7 +317,10 @@ class _McapCopier:
         with _reading(path):
             stream = path.open("rb")
         with stream:
-            for record in _guarded(path, StreamReader(stream).records):
+            # CRCs checked: a corrupt chunk of any topic must fail the copy (or be left to
+            # --recover), never be written out again under a fresh, valid CRC.
+            records = StreamReader(stream, validate_crcs=True).records
+            for record in _guarded(path, records):
                 self._copy_record(record, path)
         self._copy_unused_schemas()
 
