@@ -328,9 +328,13 @@ def test_annotate_as_a_process(
 # Runs the CLI with every mcap write slowed down, so that a signal surely arrives mid-write.
 SLOW_WRITER = textwrap.dedent(
     """
-    import os, sys, time
+    import os, signal, sys, time
     from mcap.writer import Writer
     from doseqslam_logs.cli.main import main
+
+    # A shell starts background jobs with SIGINT ignored (CI may run us that way), and Python
+    # then installs no KeyboardInterrupt handler: restore it, the test is about our cleanup.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     # The BLOCK_WRITER-th MCAP writer of the run (1: the first output or --recover's copy of
     # the input, 2: the output after that copy) blocks at its first message until a signal
@@ -345,7 +349,8 @@ SLOW_WRITER = textwrap.dedent(
 
     def add(self, *args, **kwargs):
         if writers.index(self) + 1 >= block:
-            while True:
+            deadline = time.monotonic() + 60  # never outlive a lost signal by much
+            while time.monotonic() < deadline:
                 time.sleep(0.05)
         return original_add(self, *args, **kwargs)
 
@@ -553,8 +558,12 @@ def test_a_corrupt_chunk_of_another_topic_is_not_copied_as_if_sound(
         notes = writer.register_channel("/notes", "json", other)
 
         def frame(i: int) -> bytes:
-            doc = {"timestamp": {"sec": i, "nsec": 0}, "frame_id": "c", "format": "jpeg",
-                   "data": base64.b64encode(jpeg).decode()}
+            doc = {
+                "timestamp": {"sec": i, "nsec": 0},
+                "frame_id": "c",
+                "format": "jpeg",
+                "data": base64.b64encode(jpeg).decode(),
+            }
             return json.dumps(doc).encode()
 
         for i in range(3):
