@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import csv
 import filecmp
 import json
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from doseqslam_logs.annotate import AnnotateOptions, annotate_log
@@ -93,55 +91,6 @@ def test_committed_samples_regenerate_byte_for_byte(tmp_path) -> None:
 def test_samples_stay_small() -> None:
     total = sum(p.stat().st_size for p in SAMPLES.rglob("*") if p.is_file())
     assert total <= 8 * 1024 * 1024
-
-
-def read_poses(path: Path) -> np.ndarray:
-    with path.open() as file:
-        rows = list(csv.DictReader(file))
-    return np.array([[float(r["t"]), float(r["x"]), float(r["y"]), float(r["yaw"])] for r in rows])
-
-
-@pytest.mark.parametrize("stem", ["drive_loops", "drive_parked", "drive_varrate"])
-def test_ground_truth_agrees_with_the_poses_and_documented_thresholds(stem) -> None:
-    gt = load_ground_truth(SAMPLES / f"{stem}.gt.npz")
-    poses = read_poses(SAMPLES / f"{stem}.poses.csv")
-    assert gt.n_frames == len(poses) and not gt.transposed
-    q, m = gt.matrix.nonzero()
-    assert (m < q).all() and len(q) > 0  # strictly lower triangular, and loops exist
-    distance = np.hypot(*(poses[q, 1:3] - poses[m, 1:3]).T)
-    heading = np.degrees(np.abs(np.angle(np.exp(1j * (poses[q, 3] - poses[m, 3])))))
-    assert (distance <= generator.GT_DISTANCE_M + 1e-6).all()
-    assert (heading <= generator.GT_HEADING_DEG + 1e-6).all()
-    assert (poses[q, 0] - poses[m, 0] >= generator.GT_MIN_AGE_S - 1e-6).all()
-
-
-def test_variable_rate_sample_has_uneven_intervals_and_drops() -> None:
-    facts = json.loads((SAMPLES / "drive_varrate.json").read_text())
-    assert len(facts["dropped_nominal_frames"]) == facts["config"]["drop_frames"] == 4
-    stamps = read_poses(SAMPLES / "drive_varrate.poses.csv")[:, 0]
-    intervals = np.diff(stamps)
-    assert intervals.min() > 0 and intervals.max() / intervals.min() > 1.5
-
-
-def test_generation_is_deterministic_per_seed_in_every_format(tmp_path) -> None:
-    def make(seed: int, out: Path) -> list[Path]:
-        config = generator.Config(
-            name="tiny",
-            seed=seed,
-            route="loops",
-            duration=4.0,
-            rate=2.0,
-            width=96,
-            height=72,
-            formats=("ros2mcap", "foxglove", "bag", "db3"),
-        )
-        generator.generate(config, out, 1)
-        return sorted(p for p in out.rglob("*") if p.is_file())
-
-    a, b, c = make(1, tmp_path / "a"), make(1, tmp_path / "b"), make(2, tmp_path / "c")
-    assert [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
-    assert [p.read_bytes() for p in a] != [p.read_bytes() for p in c]
-    assert len(a) >= 7  # four containers (db3 is a folder of two files) and the side files
 
 
 def test_annotating_a_sample_writes_loop_closures(tmp_path) -> None:
