@@ -25,7 +25,6 @@ from .log_frames import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, de
 from .replay import ReplayResult, replay
 from .sinks.atomic import scratch_file
 from .sinks.mcap_writer import (
-    MCAP_MAGIC,
     Annotations,
     WriteSummary,
     refuse_same_file,
@@ -33,6 +32,7 @@ from .sinks.mcap_writer import (
 )
 from .sinks.messages import FrameTimes
 from .sources import open_source, pick_image_topic
+from .sources.base import MCAP_MAGIC
 from .sources.salvage import SalvageReport, salvage_mcap
 
 HASH_BLOCK = 1 << 20
@@ -236,11 +236,3 @@ def _annotate(
     )
     written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
     return AnnotateResult(log, output, topic, result, counts, written, sha256, recovery)
-
-
-def expected_frames(log: str | Path, topic: str | None) -> int | None:
-    """The image message count of the topic (for a progress bar), or None if unknown."""
-    with open_source(log) as source:
-        name = pick_image_topic(source, topic)
-        counts = [c.message_count for c in source.channels() if c.topic == name]
-    return counts[0] if counts else None

@@ -33,6 +33,7 @@ from rosbags.typesys.store import Typestore
 from .. import __version__
 from ..detector.events import SequenceDecision
 from ..errors import DoseqslamError, OutputError, SourceError
+from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile
 from .messages import (
@@ -48,9 +49,6 @@ from .messages import (
 METADATA_NAME = "doseqslam"  # the metadata record we write (and replace when re-annotating)
 LIBRARY = f"doseqslam-logs/{__version__}"
 CHUNK_SIZE = 1024 * 1024  # fixed, like the compression: part of what makes outputs identical
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-ROS1_BAG_MAGIC = b"#ROSBAG V2.0\n"
-SQLITE_MAGIC = b"SQLite format 3\x00"
 
 InputKind = Literal["mcap", "ros1-bag", "rosbag2"]
 T = TypeVar("T")
@@ -138,7 +136,7 @@ def detect_input(input_path: str | os.PathLike[str]) -> InputLog:
         raise SourceError(f"{path}: cannot open the log: {exc.strerror or exc}") from exc
     if head.startswith(MCAP_MAGIC):
         return InputLog("mcap", path, _read_mcap_profile(path))
-    if head.startswith(ROS1_BAG_MAGIC):
+    if head.startswith(ROS1_MAGIC):
         return InputLog("ros1-bag", path, "ros1")
     if head.startswith(SQLITE_MAGIC):
         has_metadata = (path.parent / "metadata.yaml").is_file()

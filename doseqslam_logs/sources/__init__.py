@@ -11,10 +11,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 from doseqslam_logs.errors import NoCameraError, SourceError
-from doseqslam_logs.sources.base import ChannelInfo, ImageMessage, Source
+from doseqslam_logs.sources.base import (
+    MCAP_MAGIC,
+    ROS1_MAGIC,
+    SQLITE_MAGIC,
+    ChannelInfo,
+    ImageMessage,
+    Source,
+)
 from doseqslam_logs.sources.images import IMAGE_TYPES, decode_gray
 from doseqslam_logs.sources.mcap_source import McapSource
-from doseqslam_logs.sources.rosbags_source import ROS1_MAGIC, RosbagsSource
+from doseqslam_logs.sources.rosbags_source import RosbagsSource
 
 __all__ = [
     "FORMATS",
@@ -27,8 +34,6 @@ __all__ = [
     "pick_image_topic",
 ]
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-SQLITE_MAGIC = b"SQLite format 3\x00"
 
 # A probe sees the path and the first 16 bytes of the file (empty for a directory).
 Probe = Callable[[Path, bytes], bool]

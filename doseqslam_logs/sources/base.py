@@ -9,6 +9,11 @@ from typing import Literal, Protocol
 
 ImageKind = Literal["raw", "compressed"]
 
+# The first bytes of each container, the one definition that readers and writers share.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+
 
 @dataclass(frozen=True)
 class ChannelInfo:

@@ -32,7 +32,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.summary import Summary
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
-from doseqslam_logs.sources.base import ChannelInfo, ImageMessage
+from doseqslam_logs.sources.base import MCAP_MAGIC, ChannelInfo, ImageMessage
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 
 Deserializer = Callable[[bytes], Any]
@@ -46,7 +46,6 @@ REORDER_WINDOW = 64
 # mcap 1.6 renamed the time bounds (start_time/end_time still work but warn).
 _NEW_TIME_NAMES = "starting_at" in inspect.signature(SeekingReader.iter_messages).parameters
 
-MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = b"\x02" + (20).to_bytes(8, "little")  # opcode and length of the footer record
 RECOVER_HINT = "annotate --recover uses every complete message it holds"
 
@@ -280,11 +279,11 @@ def is_complete(file: IO[bytes]) -> bool:
     """Whether the file ends with a footer record and the closing magic, as every finished
     MCAP does; a recording cut short (power loss, full disk, killed recorder) does not."""
     size = file.seek(0, 2)
-    if size < 2 * len(MAGIC) + 29:
+    if size < 2 * len(MCAP_MAGIC) + 29:
         return False
-    file.seek(size - len(MAGIC) - 29)
-    tail = file.read(29 + len(MAGIC))
-    return tail.endswith(MAGIC) and tail.startswith(_FOOTER)
+    file.seek(size - len(MCAP_MAGIC) - 29)
+    tail = file.read(29 + len(MCAP_MAGIC))
+    return tail.endswith(MCAP_MAGIC) and tail.startswith(_FOOTER)
 
 
 class McapSource:

@@ -13,14 +13,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
-from doseqslam_logs.sources.base import ChannelInfo, ImageMessage
+from doseqslam_logs.sources.base import ROS1_MAGIC, ChannelInfo, ImageMessage
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 
 if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
     from rosbags.interfaces import Connection
 
-ROS1_MAGIC = b"#ROSBAG V2.0"
 REINDEX_HINT = (
     "a bag whose recording never finished (or was cut short) has no index: "
     "`rosbag reindex` it (ROS 1 tools) and try again"
