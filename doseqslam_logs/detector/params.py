@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import sys
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -13,6 +11,7 @@ from typing import Any, Literal, get_args
 import tomli_w
 
 from ..errors import ParameterError
+from ..fingerprint import canonical_json, fingerprint
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -160,12 +159,12 @@ class Parameters:
 
     def canonical_json(self) -> str:
         """Sorted keys, floats by their shortest repr: the same text on every machine."""
-        return json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return canonical_json(self.to_dict())
 
     @property
     def hash(self) -> str:
         """A stable 16-hex-digit fingerprint of every parameter."""
-        return hashlib.sha256(self.canonical_json().encode()).hexdigest()[:16]
+        return fingerprint(self.to_dict())
 
 
 DEFAULT_PARAMETERS = Parameters()

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, fields
 from typing import Any, Literal, get_args
 
 from ..errors import ParameterError
+from ..fingerprint import canonical_json, fingerprint
 
 VerificationDetector = Literal["sift", "orb", "akaze", "brisk"]
 RobustMethod = Literal["ransac", "magsac"]
@@ -107,12 +106,12 @@ class VerificationParameters:
 
     def canonical_json(self) -> str:
         """Sorted keys, floats by their shortest repr: the same text on every machine."""
-        return json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return canonical_json(self.to_dict())
 
     @property
     def hash(self) -> str:
         """A stable 16-hex-digit fingerprint of every parameter."""
-        return hashlib.sha256(self.canonical_json().encode()).hexdigest()[:16]
+        return fingerprint(self.to_dict())
 
 
 def _accepted_types(default: object) -> tuple[type, ...]:
