@@ -19,8 +19,8 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 
 from .errors import SourceError
-from .sinks.mcap_writer import METADATA_NAME
-from .sinks.messages import LOOP_CLOSURE, SEQUENCE
+from .sinks.mcap_writer import FRAME_TIMES_ATTACHMENT, METADATA_NAME
+from .sinks.messages import LOOP_CLOSURE, SEQUENCE, FrameTimes
 from .sources.mcap_source import DESERIALIZERS
 
 TOPICS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
@@ -34,6 +34,17 @@ class AnnotatedLog:
     loop_closures: list[dict[str, Any]] = field(default_factory=list)
     sequences: list[dict[str, Any]] = field(default_factory=list)
     metadata: dict[str, str] = field(default_factory=dict)
+    # Log time and header stamp of every frame by index (None: annotated before 0.2).
+    frame_times: FrameTimes | None = None
+
+    @property
+    def reported_loop_closures(self) -> list[dict[str, Any]]:
+        """The loop closures the run reports: all but those geometric verification rejected.
+
+        Rejected pairs stay on the channel (verification == "rejected") for evaluation and
+        diffs; logs annotated without verification (or before it existed) report every pair.
+        """
+        return [lc for lc in self.loop_closures if lc.get("verification") != "rejected"]
 
     @property
     def parameters(self) -> dict[str, Any]:
@@ -90,6 +101,9 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
             for record in reader.iter_metadata():
                 if record.name == METADATA_NAME:
                     log.metadata = dict(record.metadata)
+            for attachment in reader.iter_attachments():
+                if attachment.name == FRAME_TIMES_ATTACHMENT:
+                    log.frame_times = FrameTimes.from_json(attachment.data)
     except (OSError, McapError, ValueError, KeyError) as exc:
         raise SourceError(f"{path}: cannot read the annotations ({exc})") from exc
     if not log.metadata:

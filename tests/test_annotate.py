@@ -81,10 +81,23 @@ def test_annotating_an_annotated_log_replaces_our_channels(packed, tmp_path) -> 
         reader = make_reader(stream)
         topics = [c.topic for c in reader.get_summary().channels.values()]
         names = [m.name for m in reader.iter_metadata()]
+        attachments = [a.name for a in reader.iter_attachments()]
     assert topics.count("/doseqslam/loop_closures") == 1 and names.count("doseqslam") == 1
+    assert attachments.count("doseqslam/frame_times") == 1
     again = read_annotations(twice)
     assert again.parameters["threshold"] == 0.7
     assert all(m["f"] < 0.7 for m in again.loop_closures)
+
+
+@pytest.mark.parametrize("fmt", ["bag", "foxglove"])
+def test_frame_times_place_every_frame_index_in_time(packed, tmp_path, fmt) -> None:
+    out = tmp_path / "out.mcap"
+    annotate_log(packed[fmt], out, PARAMS, AnnotateOptions(sidecar=fmt == "bag"))
+    times = read_annotations(out).frame_times
+    assert times is not None and len(times) == 84
+    # pack_image_folder spaces the frames one second apart and stamps them with the log time.
+    assert (times.log_times_ns[1:] - times.log_times_ns[:-1] == 10**9).all()
+    assert (times.header_stamps_ns == times.log_times_ns).all()
 
 
 def test_ros2_output_reads_back_with_rosbags(packed, tmp_path) -> None:

@@ -47,6 +47,10 @@ from .messages import (
 )
 
 METADATA_NAME = "doseqslam"  # the metadata record we write (and replace when re-annotating)
+# Every frame's log time and header stamp, by frame index (FrameTimes.to_json), so that readers
+# of the output can place any frame index in time (ground truth from poses, plots, export).
+FRAME_TIMES_ATTACHMENT = "doseqslam/frame_times"
+FRAME_TIMES_MEDIA_TYPE = "application/json"
 LIBRARY = f"doseqslam-logs/{__version__}"
 CHUNK_SIZE = 1024 * 1024  # fixed, like the compression: part of what makes outputs identical
 
@@ -60,6 +64,7 @@ class Annotations:
 
     messages: Sequence[TimedMessage]
     metadata: Mapping[str, str]  # the `doseqslam` metadata record: version, parameters, ...
+    frame_times: FrameTimes | None = None  # written as the FRAME_TIMES_ATTACHMENT
 
     def __post_init__(self) -> None:
         """Raises TypeError when the metadata is not a mapping of strings to strings."""
@@ -84,7 +89,7 @@ class Annotations:
             *loop_closure_messages(decisions, frame_times, method, parameters_hash),
             *sequence_messages(decisions, frame_times, method, parameters_hash),
         ]
-        return cls(messages, metadata)
+        return cls(messages, metadata, frame_times)
 
 
 @dataclass(frozen=True)
@@ -256,10 +261,15 @@ class _Annotator:
             self._write(message)
             self.position += 1
 
-    def finish(self, metadata: Mapping[str, str]) -> dict[str, int]:
-        """Writes the rest of our messages and the `doseqslam` metadata record."""
+    def finish(self, metadata: Mapping[str, str], frame_times: FrameTimes | None) -> dict[str, int]:
+        """Writes the rest of our messages, the frame times and the `doseqslam` metadata."""
         self.write_until(None)
         self._register_channels()  # our channels exist even without a single message
+        if frame_times is not None:
+            last = int(frame_times.log_times_ns[-1]) if len(frame_times) else 0
+            self.writer.add_attachment(
+                0, last, FRAME_TIMES_ATTACHMENT, FRAME_TIMES_MEDIA_TYPE, frame_times.to_json()
+            )
         self.writer.add_metadata(METADATA_NAME, dict(metadata))
         return {t.topic: self.written[t.topic] for t in MESSAGE_TYPES}
 
@@ -329,7 +339,7 @@ class _McapCopier:
             self._copy_channel(record, path)
         elif isinstance(record, Message):
             self._copy_message(record, path)
-        elif isinstance(record, Attachment):
+        elif isinstance(record, Attachment) and record.name != FRAME_TIMES_ATTACHMENT:
             self.writer.add_attachment(
                 record.create_time, record.log_time, record.name, record.media_type, record.data
             )
@@ -553,7 +563,7 @@ def _write(
     annotator = _Annotator(writer, encoder_for_profile(log.profile), annotations.messages)
     if not sidecar:
         summary.copied_messages, summary.replaced_topics = _copy_input(log, writer, annotator)
-    summary.written = annotator.finish(annotations.metadata)
+    summary.written = annotator.finish(annotations.metadata, annotations.frame_times)
     writer.finish()  # type: ignore[no-untyped-call]  # mcap leaves it unannotated
 
 

@@ -7,6 +7,7 @@ lists, and times as `{"sec": int, "nsec": int}`. The encoders turn them into CDR
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -78,6 +79,23 @@ class FrameTimes:
 
     def __len__(self) -> int:
         return int(self.log_times_ns.shape[0])
+
+    def to_json(self) -> bytes:
+        """{"log_time_ns": [...], "header_stamp_ns": [...]} (-1: no header), compact."""
+        document = {
+            "log_time_ns": self.log_times_ns.tolist(),
+            "header_stamp_ns": self.header_stamps_ns.tolist(),
+        }
+        return json.dumps(document, separators=(",", ":")).encode()
+
+    @classmethod
+    def from_json(cls, data: bytes) -> FrameTimes:
+        """Raises ValueError for text that `to_json` did not write."""
+        try:
+            document = json.loads(data)
+            return cls(document["log_time_ns"], document["header_stamp_ns"])
+        except (TypeError, KeyError, json.JSONDecodeError) as exc:
+            raise ValueError(f"not a frame-times document ({exc})") from exc
 
     def log_time(self, index: int) -> int:
         """Raises ValueError for an index outside the frames."""
