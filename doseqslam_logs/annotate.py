@@ -20,6 +20,7 @@ from .errors import (
     SourceError,
     TimestampError,
 )
+from .frame_reader import LogFrameReader
 from .frames import Frame
 from .log_frames import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
 from .replay import ReplayResult, replay
@@ -33,7 +34,10 @@ from .sinks.mcap_writer import (
 from .sinks.messages import FrameTimes
 from .sources import open_source, pick_image_topic
 from .sources.base import MCAP_MAGIC
+from .sources.camera_info import read_camera_info
 from .sources.salvage import SalvageReport, salvage_mcap
+from .verification import Intrinsics, VerificationParameters, VerificationStats, Verifier
+from .verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision
 
 HASH_BLOCK = 1 << 20
 
@@ -55,6 +59,13 @@ class AnnotateOptions:
     # Threads that prepare frames (frame vectors, features) ahead of the detector; the output
     # does not depend on it.
     workers: int = 2
+    # Geometric verification of the candidate pairs (None: off, the paper's behaviour). The
+    # `annotate` command turns it on and raises th to VERIFIED_THRESHOLD (cli.params_args).
+    verification: VerificationParameters | None = None
+    # Intrinsics for the essential matrix; None: the log's CameraInfo when it has one.
+    intrinsics: Intrinsics | None = None
+    # Memory for cached per-frame verification features (evicted frames are re-read).
+    verification_cache_bytes: int = DEFAULT_CACHE_BYTES
 
 
 @dataclass(frozen=True)
@@ -67,6 +78,61 @@ class AnnotateResult:
     written: WriteSummary
     source_sha256: str
     recovery: SalvageReport | None = None  # what --recover found (MCAP inputs only)
+    verification: Verification | None = None  # None when it was off
+
+    @property
+    def loop_closures(self) -> int:
+        """Reported loop closures: the accepted pairs with verification, else every pair."""
+        if self.verification is None:
+            return self.replay.loop_closures
+        return sum(v.accepted_pairs for v in self.verification.decisions.values())
+
+
+@dataclass
+class Verification:
+    """What the verification stage decided for a run, and what it cost."""
+
+    params: VerificationParameters
+    intrinsics: Intrinsics | None
+    intrinsics_source: str  # "--intrinsics", the CameraInfo topic, or "" (none)
+    decisions: dict[int, VerifiedDecision]  # by sequence id
+    stats: VerificationStats
+
+    def metadata(self) -> dict[str, str]:
+        """Metadata entries: parameters and outcome, nothing that varies between runs."""
+        k = self.intrinsics
+        return {
+            "verification": "on",
+            "verification_parameters": self.params.canonical_json(),
+            "verification_hash": self.params.hash,
+            "intrinsics": "" if k is None else json.dumps([k.fx, k.fy, k.cx, k.cy]),
+            "intrinsics_source": self.intrinsics_source,
+            "verified_pairs": str(self.stats.candidates),
+            "accepted_pairs": str(self.stats.accepted),
+        }
+
+
+def verify_decisions(
+    read_path: Path,
+    topic: str,
+    result: ReplayResult,
+    frame_times: FrameTimes,
+    options: AnnotateOptions,
+) -> Verification | None:
+    """The verification stage over a finished replay (None when it is off)."""
+    if options.verification is None:
+        return None
+    intrinsics, origin = options.intrinsics, "--intrinsics"
+    if intrinsics is None:
+        info = read_camera_info(read_path, topic)
+        intrinsics = None if info is None else Intrinsics(info.fx, info.fy, info.cx, info.cy)
+        origin = "" if info is None else info.topic
+    with LogFrameReader(read_path, topic, frame_times) as reader:
+        verifier = Verifier(
+            options.verification, reader, intrinsics, options.verification_cache_bytes
+        )
+        verified = {d.sequence_id: verifier.verify(d) for d in result.decisions}
+    return Verification(options.verification, intrinsics, origin, verified, verifier.stats)
 
 
 def source_sha256(path: Path) -> str:
@@ -131,6 +197,7 @@ def run_metadata(
         "clock_jumps": str(counts.clock_jumps),
         "first_clock_jump": counts.first_clock_jump,
         "recovered": "" if recovery is None else json.dumps(recovery.as_metadata()),
+        "verification": "off",
         "sequences": str(len(result.decisions)),
         "loop_closures": str(result.loop_closures),
     }
@@ -229,10 +296,22 @@ def _annotate(
             f"{log}: none of the {counts.messages} image messages of {topic} could be used "
             f"({reasons}); first: {first}"
         )
+    frame_times = recorder.frame_times()
+    verification = verify_decisions(read_path, topic, result, frame_times, options)
     sha256 = source_sha256(log)
     metadata = run_metadata(params, result, counts, log, sha256, topic, options, recovery)
+    if verification is not None:
+        metadata.update(verification.metadata())
+        metadata["loop_closures"] = str(verification.stats.accepted)
     annotations = Annotations.from_decisions(
-        result.decisions, recorder.frame_times(), params.method, params.hash, metadata
+        result.decisions,
+        frame_times,
+        params.method,
+        params.hash,
+        metadata,
+        None if verification is None else verification.decisions,
     )
     written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
-    return AnnotateResult(log, output, topic, result, counts, written, sha256, recovery)
+    return AnnotateResult(
+        log, output, topic, result, counts, written, sha256, recovery, verification
+    )

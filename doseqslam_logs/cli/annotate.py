@@ -7,7 +7,13 @@ import sys
 from pathlib import Path
 
 from ..annotate import AnnotateOptions, AnnotateResult, annotate_log
-from .params_args import add_parameter_options, parameters_from_args
+from .params_args import (
+    add_parameter_options,
+    add_verification_options,
+    intrinsics_from_args,
+    run_parameters,
+    verification_from_args,
+)
 from .progress import Progress
 from .times import parse_time_ns
 
@@ -30,6 +36,20 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     )
     parser.add_argument("log", type=Path, help="MCAP file, ROS 1 .bag, rosbag2 folder or .db3")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.mcap")
+    add_run_options(parser)
+    parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=2,
+        metavar="N",
+        help="threads that prepare frames (features) ahead of the detector (default 2); the "
+        "output is the same for any N",
+    )
+    parser.set_defaults(run=run)
+
+
+def add_run_options(parser: argparse.ArgumentParser) -> None:
+    """Every option of a run but the input, the output and --workers (annotate and batch)."""
     parser.add_argument("--topic", help="camera topic (needed when the log has several)")
     parser.add_argument(
         "--time-source",
@@ -66,20 +86,28 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "holds (copied first into a temporary file beside the output) instead of failing",
     )
     parser.add_argument(
-        "--workers",
-        type=positive_int,
-        default=2,
-        metavar="N",
-        help="threads that prepare frames (features) ahead of the detector (default 2); the "
-        "output is the same for any N",
-    )
-    parser.add_argument(
         "--sidecar",
         action="store_true",
         help="write only our channels and metadata, not the input's records",
     )
     add_parameter_options(parser)
-    parser.set_defaults(run=run)
+    add_verification_options(parser)
+
+
+def annotate_options_from_args(args: argparse.Namespace, workers: int) -> AnnotateOptions:
+    """The AnnotateOptions of the options add_run_options defines."""
+    return AnnotateOptions(
+        topic=args.topic,
+        time_source=args.time_source,
+        start_ns=args.start,
+        end_ns=args.end,
+        on_error=args.on_error,
+        sidecar=args.sidecar,
+        recover=args.recover,
+        workers=workers,
+        verification=verification_from_args(args),
+        intrinsics=intrinsics_from_args(args),
+    )
 
 
 def summary_line(result: AnnotateResult) -> str:
@@ -95,9 +123,20 @@ def summary_line(result: AnnotateResult) -> str:
         notes.append(f"{counts.clock_jumps} camera clock jumps bridged with the log time")
     if result.recovery is not None and result.recovery.damaged:
         notes.append(f"recovered: {result.recovery.describe()}")
+    verification = result.verification
+    if verification is not None:
+        stats = verification.stats
+        pose = f"essential matrix, intrinsics from {verification.intrinsics_source}"
+        notes.insert(
+            0,
+            f"verified {stats.candidates} candidate pairs: {stats.accepted} accepted "
+            f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
+            f"{stats.total_s:.1f} s; "
+            f"{pose if verification.intrinsics else 'fundamental matrix, no intrinsics'})",
+        )
     return (
         f"{result.output_path}: {replay.frames} frames of {result.topic}, "
-        f"{len(replay.decisions)} sequences, {replay.loop_closures} loop closures, "
+        f"{len(replay.decisions)} sequences, {result.loop_closures} loop closures, "
         f"{counts.skipped_total} skipped frames{f' ({reasons})' if reasons else ''}, "
         f"{replay.wall_time_s:.1f} s, {replay.frames_per_second:.0f} frames/s"
         + "".join(f"; {note}" for note in notes)
@@ -117,17 +156,8 @@ def warnings(result: AnnotateResult) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    params = parameters_from_args(args)
-    options = AnnotateOptions(
-        topic=args.topic,
-        time_source=args.time_source,
-        start_ns=args.start,
-        end_ns=args.end,
-        on_error=args.on_error,
-        sidecar=args.sidecar,
-        recover=args.recover,
-        workers=args.workers,
-    )
+    params = run_parameters(args)
+    options = annotate_options_from_args(args, args.workers)
     progress = Progress(None, "annotate")
 
     def expected(total: int | None) -> None:

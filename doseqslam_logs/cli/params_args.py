@@ -3,9 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 from ..detector import Parameters
-from ..errors import ParameterError
+from ..errors import ParameterError, UsageError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
+from ..verification import (
+    VERIFIED_THRESHOLD,
+    Intrinsics,
+    VerificationParameters,
+)
 
 
 def add_parameter_options(parser: argparse.ArgumentParser) -> None:
@@ -44,3 +56,87 @@ def parameters_from_args(args: argparse.Namespace) -> Parameters:
             changed = Parameters.from_toml(f'{name.strip()} = "{value.strip()}"')
         params = params.replace(**{name.strip(): getattr(changed, name.strip())})
     return params
+
+
+def add_verification_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("geometric verification")
+    group.add_argument(
+        "--no-verify",
+        dest="verify",
+        action="store_false",
+        help="report the detector's decisions unchecked (the paper's behaviour; th defaults to "
+        f"the paper's 0.75 instead of {VERIFIED_THRESHOLD:g})",
+    )
+    group.add_argument(
+        "--intrinsics",
+        metavar="FX,FY,CX,CY",
+        help="camera intrinsics in pixels of the images (default: the log's CameraInfo; "
+        "without either, the fundamental matrix is fitted and no relative pose is given)",
+    )
+    group.add_argument(
+        "--vset",
+        dest="verification_overrides",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override one verification parameter, e.g. --vset min_inliers=40 (repeatable)",
+    )
+
+
+def verification_from_args(args: argparse.Namespace) -> VerificationParameters | None:
+    """The verification parameters, or None with --no-verify.
+
+    Raises ParameterError for a bad name or value.
+    """
+    if not args.verify:
+        return None
+    values: dict[str, object] = {}
+    for item in args.verification_overrides:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ParameterError(f"--vset expects NAME=VALUE, got {item!r}")
+        values[name.strip()] = _plain_value(value.strip())
+    return VerificationParameters.from_dict(values)
+
+
+def _plain_value(text: str) -> object:
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            continue
+    return text
+
+
+def intrinsics_from_args(args: argparse.Namespace) -> Intrinsics | None:
+    """--intrinsics fx,fy,cx,cy, or None. Raises UsageError for a malformed value."""
+    if not getattr(args, "intrinsics", None):
+        return None
+    try:
+        fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
+        return Intrinsics(fx, fy, cx, cy)
+    except ValueError as exc:
+        raise UsageError(
+            f"--intrinsics expects four numbers FX,FY,CX,CY with FX, FY > 0, got "
+            f"{args.intrinsics!r}"
+        ) from exc
+
+
+def run_parameters(args: argparse.Namespace) -> Parameters:
+    """The detector parameters of a run: with verification on, th defaults to
+    VERIFIED_THRESHOLD (the check supplies the precision) unless --config or --set gave one.
+
+    Raises ParameterError as parameters_from_args.
+    """
+    params = parameters_from_args(args)
+    if getattr(args, "verify", False) and not _threshold_given(args):
+        params = params.replace(threshold=VERIFIED_THRESHOLD)
+    return params
+
+
+def _threshold_given(args: argparse.Namespace) -> bool:
+    if any(item.partition("=")[0].strip() == "threshold" for item in args.overrides):
+        return True
+    if args.config:  # already read and validated by parameters_from_args
+        return "threshold" in tomllib.loads(Path(args.config).read_text(encoding="utf-8"))
+    return False

@@ -42,6 +42,7 @@ from .messages import (
     FrameTimes,
     MessageType,
     TimedMessage,
+    Verifications,
     loop_closure_messages,
     sequence_messages,
 )
@@ -80,14 +81,17 @@ class Annotations:
         method: str,
         parameters_hash: str,
         metadata: Mapping[str, str],
+        verifications: Verifications = None,
     ) -> Annotations:
-        """Loop-closure and sequence messages for these `SequenceDecision`s.
+        """Loop-closure and sequence messages for these `SequenceDecision`s (and their
+        verification, None when it was off).
 
         Raises ValueError when a decision names a frame outside `frame_times`.
         """
+        v = verifications
         messages = [
-            *loop_closure_messages(decisions, frame_times, method, parameters_hash),
-            *sequence_messages(decisions, frame_times, method, parameters_hash),
+            *loop_closure_messages(decisions, frame_times, method, parameters_hash, v),
+            *sequence_messages(decisions, frame_times, method, parameters_hash, v),
         ]
         return cls(messages, metadata, frame_times)
 

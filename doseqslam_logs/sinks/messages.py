@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +17,10 @@ import numpy as np
 import numpy.typing as npt
 
 from ..detector.events import Candidate, SequenceDecision
+from ..verification.stage import PairCheck, VerifiedDecision
+
+# sequence id -> its verification; None for a run without verification (--no-verify).
+Verifications = Mapping[int, VerifiedDecision] | None
 
 NO_STAMP = -1  # header stamp of a frame whose image message has no header
 NANOS_PER_SECOND = 1_000_000_000
@@ -128,10 +132,14 @@ def loop_closure_messages(
     frame_times: FrameTimes,
     method: str,
     parameters_hash: str,
+    verifications: Verifications = None,
 ) -> list[TimedMessage]:
-    """One `LoopClosure` message per reported pair, with the query image's log time.
+    """One `LoopClosure` message per pair of an accepted decision, with the query's log time.
 
-    Raises ValueError when a decision names a frame outside `frame_times` or another method.
+    With `verifications`, each pair carries its check (rejected pairs included, marked so).
+
+    Raises ValueError when a decision names a frame outside `frame_times` or another method,
+    or a decision has no verification in `verifications`.
     """
     messages: list[TimedMessage] = []
     for decision in decisions:
@@ -139,14 +147,69 @@ def loop_closure_messages(
         pairs = decision.loop_closures
         if not pairs:
             continue
+        checks = _checks(decision, verifications)
         match_bounds = (min(p.match_index for p in pairs), max(p.match_index for p in pairs))
-        for pair in pairs:
-            fields = _loop_closure_fields(
-                decision, pair, match_bounds, frame_times, method, parameters_hash
-            )
+        for pair, check in zip(pairs, checks, strict=True):
+            fields = {
+                **_loop_closure_fields(
+                    decision, pair, match_bounds, frame_times, method, parameters_hash
+                ),
+                **_verification_fields(pair, check, frame_times),
+            }
             log_time = frame_times.log_time(pair.query_index)
             messages.append(TimedMessage(LOOP_CLOSURE, log_time, pair.query_index, fields))
     return messages
+
+
+def _checks(decision: SequenceDecision, verifications: Verifications) -> Sequence[PairCheck | None]:
+    if verifications is None:
+        return [None] * len(decision.loop_closures)
+    verified = verifications.get(decision.sequence_id)
+    if verified is None or len(verified.checks) != len(decision.loop_closures):
+        raise ValueError(f"sequence {decision.sequence_id} has no verification of its pairs")
+    return verified.checks
+
+
+_MODEL_NAMES = {"F": "fundamental", "E": "essential"}
+
+
+def _verification_fields(
+    pair: Candidate, check: PairCheck | None, frame_times: FrameTimes
+) -> dict[str, Any]:
+    refined = pair.match_index if check is None else check.refined_match_index
+    frame = _frame_fields("refined_match", refined, frame_times)
+    if check is None:
+        return {
+            "verification": "off",
+            "inliers": -1,
+            "tentative_matches": -1,
+            "verification_model": "",
+            "rejection_reason": "",
+            **frame,
+            **_pose_fields(None, None, None),
+        }
+    verdict = check.verdict
+    return {
+        "verification": "accepted" if verdict.accepted else "rejected",
+        "inliers": verdict.inliers,
+        "tentative_matches": verdict.matches_tested,
+        "verification_model": _MODEL_NAMES[verdict.model],
+        "rejection_reason": "" if verdict.accepted else verdict.reason,
+        **frame,
+        **_pose_fields(verdict.rotation_xyzw, verdict.rotation_deg, verdict.translation_direction),
+    }
+
+
+def _pose_fields(
+    rotation: Sequence[float] | None, degrees: float | None, direction: Sequence[float] | None
+) -> dict[str, Any]:
+    known = rotation is not None and direction is not None
+    return {
+        "has_relative_pose": known,
+        "rotation_xyzw": [float(v) for v in rotation] if rotation else [math.nan] * 4,
+        "rotation_deg": optional_float(degrees),
+        "translation_direction": [float(v) for v in direction] if direction else [math.nan] * 3,
+    }
 
 
 def sequence_messages(
@@ -154,6 +217,7 @@ def sequence_messages(
     frame_times: FrameTimes,
     method: str,
     parameters_hash: str,
+    verifications: Verifications = None,
 ) -> list[TimedMessage]:
     """One `Sequence` message per decision, with the log time of the sequence's last frame.
 
@@ -162,10 +226,28 @@ def sequence_messages(
     messages: list[TimedMessage] = []
     for decision in decisions:
         _check_method(decision, method)
-        fields = _sequence_fields(decision, frame_times, method, parameters_hash)
+        fields = {
+            **_sequence_fields(decision, frame_times, method, parameters_hash),
+            **_sequence_verification(decision, verifications),
+        }
         log_time = frame_times.log_time(decision.last_index)
         messages.append(TimedMessage(SEQUENCE, log_time, decision.sequence_id, fields))
     return messages
+
+
+def _sequence_verification(
+    decision: SequenceDecision, verifications: Verifications
+) -> dict[str, Any]:
+    if verifications is None:
+        return {"verification": "off", "verified_pairs": 0, "accepted_pairs": 0, "max_inliers": 0}
+    verified = verifications.get(decision.sequence_id)
+    checks = () if verified is None else verified.checks
+    return {
+        "verification": "on",
+        "verified_pairs": len(checks),
+        "accepted_pairs": sum(check.accepted for check in checks),
+        "max_inliers": max((check.verdict.inliers for check in checks), default=0),
+    }
 
 
 def _check_method(decision: SequenceDecision, method: str) -> None:

@@ -15,14 +15,20 @@ from .geometry import (
     refine_match,
     verify_pair,
 )
-from .params import DEFAULT_VERIFICATION, VerificationParameters
+from .params import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD, VerificationParameters
+from .stage import PairCheck, VerificationStats, VerifiedDecision, Verifier
 
 __all__ = [
     "DEFAULT_VERIFICATION",
+    "VERIFIED_THRESHOLD",
     "FrameFeatures",
     "Intrinsics",
+    "PairCheck",
     "Verdict",
     "VerificationParameters",
+    "VerificationStats",
+    "VerifiedDecision",
+    "Verifier",
     "best_verdict",
     "extract_features",
     "refine_match",

@@ -119,3 +119,8 @@ def _accepted_types(default: object) -> tuple[type, ...]:
 
 
 DEFAULT_VERIFICATION = VerificationParameters()
+
+# The detector's th when verification is on (unless given): the check supplies the precision,
+# so the detector only needs to propose; chosen on the RTAB-Map samples and our sample logs
+# (docs/results.md, "Verified loop closures").
+VERIFIED_THRESHOLD = 0.99
