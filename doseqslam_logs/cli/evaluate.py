@@ -1,10 +1,18 @@
-"""`doseqslam-logs evaluate`: replay the detector on an image folder, score it on ground truth."""
+"""`doseqslam-logs evaluate`: score a run against ground truth.
+
+Two modes, exactly one per call:
+* `evaluate --images DIR --fps F --gt GT`: replay the detector on an image folder;
+* `evaluate OUT.mcap (--gt GT | --gt-topic TOPIC --radius R)`: score the run an annotated log
+  records, from its /doseqslam/sequences, without re-running the detector (optionally with
+  pictures, `--plot DIR`).
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from .. import __version__
 from ..detector import make_detector
@@ -13,6 +21,7 @@ from ..evaluation.groundtruth import load_ground_truth
 from ..evaluation.metrics import evaluate, format_report
 from ..replay import replay
 from ..sources.folder import folder_frames, list_images
+from . import evaluate_log
 from .params_args import add_parameter_options, parameters_from_args
 from .progress import Progress
 
@@ -20,19 +29,25 @@ from .progress import Progress
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "evaluate",
-        help="run the detector on an image folder and score it against a ground-truth matrix",
-        description="Replay the detector over a folder of images (natural file-name order, "
-        "stamped at --fps) and report TP, FP, precision and recall at the configured threshold, "
-        "the highest recall at 100%% precision (R@P100) and the threshold that gives it.",
+        help="score the detector against ground truth: on an image folder, or the run an "
+        "annotated log records",
+        description="Report TP, FP, precision and recall at the decision threshold, the highest "
+        "recall at 100%% precision (R@P100) and the threshold that gives it, and recall at "
+        "precision >= 0.9. Either replay the detector over a folder of images (--images, natural "
+        "file-name order, stamped at --fps), or read the run recorded in an annotated log "
+        "(OUT.mcap: no detector run; ground truth from a file, --gt, or from a pose topic of the "
+        "log, --gt-topic with --radius).",
     )
-    parser.add_argument("--images", type=Path, required=True, metavar="DIR", help="image folder")
-    parser.add_argument("--fps", type=float, required=True, help="frame rate of the folder")
+    parser.add_argument(
+        "log", type=Path, nargs="?", metavar="OUT.mcap", help="annotated log (or sidecar)"
+    )
+    parser.add_argument("--images", type=Path, metavar="DIR", help="image folder")
+    parser.add_argument("--fps", type=float, help="frame rate of the folder (with --images)")
     parser.add_argument(
         "--gt",
         type=Path,
-        required=True,
         metavar="GTFILE",
-        help="ground-truth matrix (.mat, .bmp/.png, .npy/.npz)",
+        help="ground-truth matrix (.mat, .bmp/.png, .npy/.npz), one row per frame",
     )
     parser.add_argument(
         "--gt-variable", metavar="NAME", help="variable inside a .mat/.npz (default: the only one)"
@@ -45,14 +60,36 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         help="count a match within +-K frames of a ground-truth cell (default 0)",
     )
     parser.add_argument("--json", action="store_true", help="print the results as JSON")
+    evaluate_log.add_log_options(parser)
     add_parameter_options(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    params = parameters_from_args(args)
+    if (args.log is None) == (args.images is None):
+        raise UsageError(
+            "evaluate needs exactly one of an annotated log (OUT.mcap) or --images DIR"
+        )
     if args.tolerance < 0:
         raise UsageError(f"--tolerance must be >= 0, got {args.tolerance}")
+    if args.log is not None:
+        return evaluate_log.run_log(args)
+    return _run_images(args)
+
+
+def _check_images_args(args: argparse.Namespace) -> None:
+    if args.fps is None:
+        raise UsageError("--images needs --fps")
+    if args.gt is None:
+        raise UsageError("--images needs --gt GTFILE")
+    used = evaluate_log.log_only_options(args)
+    if used:
+        raise UsageError(f"{', '.join(used)}: only with an annotated log (OUT.mcap)")
+
+
+def _run_images(args: argparse.Namespace) -> int:
+    _check_images_args(args)
+    params = parameters_from_args(args)
     gt = load_ground_truth(args.gt, args.gt_variable)
     total = len(list_images(args.images))
     if total != gt.n_frames:  # checked before the run: a wrong GT file is the usual cause
@@ -66,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     evaluation = evaluate(result.decisions, gt, params.threshold, args.tolerance)
-    header = {
+    header: dict[str, Any] = {
         "tool_version": __version__,
         "images": str(args.images),
         "fps": args.fps,

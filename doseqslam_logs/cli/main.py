@@ -18,9 +18,9 @@ from types import FrameType
 
 from .. import __version__
 from ..errors import DoseqslamError, ExitCode
-from . import annotate, evaluate, info
+from . import annotate, batch, diff, evaluate, export, info
 
-SUBCOMMANDS = (info, annotate, evaluate)
+SUBCOMMANDS = (info, annotate, evaluate, diff, batch, export)
 
 
 class Terminated(KeyboardInterrupt):

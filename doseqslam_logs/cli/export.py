@@ -1,0 +1,125 @@
+"""`doseqslam-logs export OUT.mcap --format csv|jsonl|tum|g2o`: an annotated log for other tools.
+
+The text goes to stdout, or with -o to a file that appears whole (atomic write); a line saying
+what was written goes to stderr. docs/export.md describes every format and the g2o measurement
+model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from ..annotated import read_annotations
+from ..errors import UsageError
+from ..export import FORMATS, ExportOptions
+from ..export.base import DEFAULT_LOOP_ROTATION_SIGMA_DEG, DEFAULT_LOOP_TRANSLATION_SIGMA_M
+from ..sinks.atomic import atomic_output
+from .annotate import positive_int
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = float(text)
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text}")
+    return value
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    formats = "; ".join(f"{name}: {exporter.help}" for name, exporter in FORMATS.items())
+    parser = subparsers.add_parser(
+        "export",
+        help="write the loop closures of an annotated log as csv, jsonl, tum or g2o",
+        description=f"Export an annotated log for other tools. Formats: {formats}. "
+        "Measurement model and columns: docs/export.md.",
+    )
+    parser.add_argument("log", type=Path, metavar="OUT.mcap", help="an annotated MCAP (or sidecar)")
+    parser.add_argument("--format", required=True, choices=list(FORMATS), help="output format")
+    parser.add_argument(
+        "-o", "--output", type=Path, metavar="FILE", help="write here (atomically), not to stdout"
+    )
+    parser.add_argument(
+        "--include-rejected",
+        action="store_true",
+        help="csv/jsonl: also the pairs geometric verification rejected (column verification)",
+    )
+    add_pose_graph_options(parser)
+    parser.set_defaults(run=run)
+
+
+def add_pose_graph_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--odometry-topic",
+        metavar="TOPIC",
+        help="tum/g2o: the pose topic (nav_msgs/Odometry, PoseStamped, "
+        "PoseWithCovarianceStamped, foxglove.PoseInFrame) placed at the camera times",
+    )
+    parser.add_argument(
+        "--poses-from",
+        type=Path,
+        metavar="LOG",
+        help="tum/g2o: read the pose topic from this log (default: OUT.mcap itself; needed for "
+        "a --sidecar output)",
+    )
+    parser.add_argument(
+        "--stride",
+        type=positive_int,
+        default=1,
+        metavar="K",
+        help="tum/g2o: keep every K-th frame, the first and last, and every loop-closure frame "
+        "(default 1: all frames)",
+    )
+    parser.add_argument(
+        "--loop-translation-sigma",
+        type=positive_float,
+        default=DEFAULT_LOOP_TRANSLATION_SIGMA_M,
+        metavar="M",
+        help="g2o: standard deviation of a loop edge's (zero) translation, metres "
+        f"(default {DEFAULT_LOOP_TRANSLATION_SIGMA_M:g})",
+    )
+    parser.add_argument(
+        "--loop-rotation-sigma",
+        type=positive_float,
+        default=DEFAULT_LOOP_ROTATION_SIGMA_DEG,
+        metavar="DEG",
+        help="g2o: standard deviation of a loop edge's rotation, degrees "
+        f"(default {DEFAULT_LOOP_ROTATION_SIGMA_DEG:g})",
+    )
+    parser.add_argument(
+        "--identity-loop-rotation",
+        action="store_true",
+        help="g2o: identity rotation on every loop edge, even when verification recorded one",
+    )
+
+
+def _options(args: argparse.Namespace) -> ExportOptions:
+    return ExportOptions(
+        include_rejected=args.include_rejected,
+        odometry_topic=args.odometry_topic,
+        poses_log=args.poses_from,
+        stride=args.stride,
+        loop_translation_sigma_m=args.loop_translation_sigma,
+        loop_rotation_sigma_deg=args.loop_rotation_sigma,
+        use_verified_rotation=not args.identity_loop_rotation,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.output is not None and args.output.resolve() == args.log.resolve():
+        raise UsageError(f"{args.output}: the output would replace the input")
+    log = read_annotations(args.log)
+    result = FORMATS[args.format].export(log, _options(args))
+    if args.output is None:
+        for chunk in result.chunks:
+            sys.stdout.write(chunk)
+        sys.stdout.flush()
+        print(f"{args.format}: {result.summary}", file=sys.stderr)
+    else:
+        with atomic_output(args.output) as stream:
+            for chunk in result.chunks:
+                stream.write(chunk.encode())
+        print(f"{args.output}: {result.summary}", file=sys.stderr)
+    return 0

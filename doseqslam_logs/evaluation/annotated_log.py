@@ -1,0 +1,230 @@
+"""Scoring an annotated log without re-running the detector.
+
+`/doseqslam/sequences` keeps every decided sequence with its candidate pairs and its f, so the
+`SequenceDecision`s of the run can be rebuilt from the messages and handed to
+`metrics.evaluate`, which sweeps the precision-recall curve exactly as for an in-memory run.
+
+With geometric verification (issue #5) the log also says which pairs survived it: the
+`verified` evaluation keeps each sequence but replaces its candidates with its pairs whose
+`verification` is "accepted", at their refined match. Only sequences with f below the recorded
+threshold were verified, so the verified curve ends at that threshold.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+from ..annotated import AnnotatedLog
+from ..detector.events import Candidate, SequenceDecision
+from ..errors import GroundTruthError, UsageError
+from ..sinks.messages import NANOS_PER_SECOND, FrameTimes
+from .groundtruth import GroundTruth
+from .metrics import Evaluation, evaluate
+
+ACCEPTED = "accepted"
+REJECTED = "rejected"
+
+
+@dataclass(frozen=True)
+class LogEvaluation:
+    """The raw figures (every candidate, swept over f) and, for a verified run, the verified
+    ones (accepted pairs only); `verified` is None when the log has no verification."""
+
+    raw: Evaluation
+    verified: Evaluation | None
+
+
+def time_ns(value: Mapping[str, Any]) -> int:
+    """A {"sec", "nsec"} time as nanoseconds."""
+    return int(value["sec"]) * NANOS_PER_SECOND + int(value["nsec"])
+
+
+def _optional(value: Any) -> float | None:
+    """NaN is the messages' "missing" float; None is the decision's."""
+    number = float(value)
+    return None if math.isnan(number) else number
+
+
+def matched_index(loop_closure: Mapping[str, Any]) -> int:
+    """The matched frame of a pair: the refined match when verification recorded one."""
+    return int(loop_closure.get("refined_match_index", loop_closure["match_index"]))
+
+
+def frame_count(log: AnnotatedLog) -> int:
+    """Frames the run used: from the frame times, else the last frame any sequence covers."""
+    if log.frame_times is not None:
+        return len(log.frame_times)
+    return max((int(s["last_index"]) for s in log.sequences), default=-1) + 1
+
+
+def recorded_threshold(log: AnnotatedLog) -> float:
+    """The run's th: from the parameters in the metadata, else from the sequences."""
+    threshold = log.parameters.get("threshold")
+    if threshold is None and log.sequences:
+        threshold = log.sequences[0]["threshold"]
+    if threshold is None:
+        raise UsageError(f"{log.path}: the log records no detector threshold")
+    return float(threshold)
+
+
+def has_verification(log: AnnotatedLog) -> bool:
+    """True when the run verified its pairs geometrically (even if none was a candidate)."""
+    return any(s.get("verification") == "on" for s in log.sequences) or any(
+        lc.get("verification") in (ACCEPTED, REJECTED) for lc in log.loop_closures
+    )
+
+
+def _frame_time(frame_times: FrameTimes | None, index: int) -> int:
+    """A frame's log time, or 0 when the log predates frame times (evaluation ignores it)."""
+    if frame_times is None or not 0 <= index < len(frame_times):
+        return 0
+    return frame_times.log_time(index)
+
+
+def decision_from_sequence(
+    message: Mapping[str, Any],
+    candidates: Sequence[Candidate] | None = None,
+    frame_times: FrameTimes | None = None,
+) -> SequenceDecision:
+    """The `SequenceDecision` a Sequence message records; `candidates` replaces its own."""
+    if candidates is None:
+        pairs = zip(
+            message["candidate_query_indices"],
+            message["candidate_match_indices"],
+            message["candidate_differences"],
+            strict=True,
+        )
+        candidates = [
+            Candidate(
+                int(q),
+                int(m),
+                _frame_time(frame_times, int(q)),
+                _frame_time(frame_times, int(m)),
+                float(d),
+            )
+            for q, m, d in pairs
+        ]
+    has_candidate = bool(message["has_candidate"])
+    return SequenceDecision(
+        sequence_id=int(message["sequence_id"]),
+        first_index=int(message["first_index"]),
+        last_index=int(message["last_index"]),
+        first_timestamp_ns=time_ns(message["first_timestamp"]),
+        last_timestamp_ns=time_ns(message["last_timestamp"]),
+        database_size=int(message["database_size"]),
+        best_start=int(message["best_start"]) if has_candidate else None,
+        best_velocity=_optional(message["best_velocity"]),
+        best_score=_optional(message["best_score"]),
+        second_score=_optional(message["second_score"]),
+        gamma=float(message["gamma"]),
+        gamma_previous=_optional(message["gamma_previous"]),
+        gamma_next=_optional(message["gamma_next"]),
+        f=float(message["f"]),
+        threshold=float(message["threshold"]),
+        accepted=bool(message["accepted"]),
+        candidates=tuple(candidates),
+        method=str(message["method"]),
+    )
+
+
+def raw_decisions(log: AnnotatedLog) -> list[SequenceDecision]:
+    """Every decision of the run, with every candidate pair, in the order they were made."""
+    return [decision_from_sequence(s, frame_times=log.frame_times) for s in log.sequences]
+
+
+def verified_decisions(log: AnnotatedLog) -> list[SequenceDecision]:
+    """Every decision of the run, its candidates replaced by its geometrically accepted pairs
+    (at the refined match); sequences that were not verified keep no candidate."""
+    accepted: dict[int, list[Candidate]] = defaultdict(list)
+    for lc in log.loop_closures:
+        if lc.get("verification") == ACCEPTED:
+            query, match = int(lc["query_index"]), matched_index(lc)
+            accepted[int(lc["sequence_id"])].append(
+                Candidate(
+                    query,
+                    match,
+                    time_ns(lc["query_log_time"]),
+                    _frame_time(log.frame_times, match),
+                    float(lc["difference"]),
+                )
+            )
+    decisions = []
+    for message in log.sequences:
+        pairs = accepted.get(int(message["sequence_id"]), [])
+        decision = decision_from_sequence(message, pairs, log.frame_times)
+        decisions.append(replace(decision, accepted=bool(pairs) and decision.accepted))
+    return decisions
+
+
+def check_ground_truth_size(log: AnnotatedLog, gt: GroundTruth) -> None:
+    """The ground truth must cover exactly the frames the run used."""
+    frames = frame_count(log)
+    if gt.n_frames != frames:
+        raise GroundTruthError(
+            f"{gt.source}: ground truth has {gt.n_frames} frames but {log.path} was annotated "
+            f"over {frames} frames"
+        )
+
+
+def evaluate_annotated_log(log: AnnotatedLog, gt: GroundTruth, tolerance: int = 0) -> LogEvaluation:
+    """Score the run recorded in `log` against `gt` at its recorded threshold.
+
+    Raises:
+        GroundTruthError: the ground truth does not have one row per frame of the run.
+        UsageError: tolerance is negative, or the log records no threshold.
+    """
+    check_ground_truth_size(log, gt)
+    threshold = recorded_threshold(log)
+    raw = evaluate(raw_decisions(log), gt, threshold, tolerance)
+    verified = None
+    if has_verification(log):
+        verified = evaluate(verified_decisions(log), gt, threshold, tolerance)
+    return LogEvaluation(raw, verified)
+
+
+# -- report -------------------------------------------------------------------------------
+
+
+def _percent(value: float) -> str:
+    return f"{100 * value:.2f} %"
+
+
+def _column(e: Evaluation) -> list[str]:
+    """The figures that differ between raw and verified, one cell per report line."""
+    th = "-" if e.threshold_at_r_p100 is None else f"{e.threshold_at_r_p100:.6g}"
+    return [
+        f"{e.tp + e.fp} (TP {e.tp}, FP {e.fp})",
+        _percent(e.precision),
+        f"{_percent(e.recall)} ({e.tp} of {e.gt_loop_events})",
+        f"{_percent(e.r_p100)} at th = {th}",
+        _percent(e.recall_at_p90),
+    ]
+
+
+_ROWS = ("reported pairs", "precision", "recall", "R@P100", "recall at P>=0.9")
+
+
+def format_log_report(result: LogEvaluation) -> str:
+    """The evaluation of an annotated log: shared facts, then raw and verified side by side."""
+    raw, verified = result.raw, result.verified
+    s = raw.lengths
+    lines = [
+        f"ground truth     : {raw.gt_file} ({raw.gt_frames} frames, {raw.gt_loop_events} loop "
+        f"events{', transposed from upper triangular' if raw.gt_transposed else ''})",
+        f"frames decided   : {raw.frames}",
+        f"sequences        : {raw.sequences} (length min {s.min}, median {s.median:g}, "
+        f"mean {s.mean:.2f}, max {s.max})",
+        f"threshold th     : {raw.threshold:g} (recorded; tolerance +-{raw.tolerance} frames); "
+        f"{raw.accepted_sequences} sequences below it",
+    ]
+    columns = [_column(raw)] + ([_column(verified)] if verified is not None else [])
+    width = max(len(cell) for cell in columns[0]) + 3
+    if verified is not None:
+        lines.append(f"{'':17}  {'raw (all candidates)':<{width}}verified (accepted pairs)")
+    for row, cells in zip(_ROWS, zip(*columns, strict=True), strict=True):
+        lines.append(f"{row:<17}: " + "".join(f"{cell:<{width}}" for cell in cells).rstrip())
+    return "\n".join(lines)

@@ -1,0 +1,61 @@
+"""g2o: the pose graph of `pose_graph` in the g2o text format (3-D, quaternions).
+
+    VERTEX_SE3:QUAT id x y z qx qy qz qw
+    EDGE_SE3:QUAT id1 id2 x y z qx qy qz qw I11 I12 .. I16 I22 .. I66
+    FIX id
+
+Vertex ids are frame indices. Odometry edges come first, then loop edges (in log order). The
+information is the upper triangle of the 6 x 6 matrix, row by row. `FIX` holds the first
+vertex in g2o; GTSAM's readG2o ignores it (add a prior there).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+
+import numpy as np
+
+from ..annotated import AnnotatedLog
+from ..errors import UsageError
+from .base import Exporter, ExportOptions, ExportResult
+from .pose_graph import Edge, PoseGraph, build_pose_graph
+
+_UPPER = np.triu_indices(6)
+
+
+def _numbers(values: Iterable[float]) -> str:
+    return " ".join(f"{value:.17g}" for value in values)
+
+
+def edge_line(edge: Edge) -> str:
+    measurement = _numbers([*edge.translation, *edge.quaternion_xyzw])
+    information = _numbers(edge.information[_UPPER])
+    return f"EDGE_SE3:QUAT {edge.from_id} {edge.to_id} {measurement} {information}\n"
+
+
+def g2o_lines(graph: PoseGraph) -> Iterator[str]:
+    for k, vertex_id in enumerate(graph.vertex_ids):
+        pose = [*graph.poses.positions[k], *graph.poses.quaternions_xyzw[k]]
+        yield f"VERTEX_SE3:QUAT {vertex_id} {_numbers(pose)}\n"
+    for edge in [*graph.odometry_edges, *graph.loop_edges]:
+        yield edge_line(edge)
+    yield f"FIX {graph.vertex_ids[0]}\n"
+
+
+def require_odometry_topic(options: ExportOptions, format_name: str) -> None:
+    if options.odometry_topic is None:
+        raise UsageError(f"--format {format_name} needs --odometry-topic (e.g. /odom)")
+
+
+def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
+    require_odometry_topic(options, "g2o")
+    graph = build_pose_graph(log, options)
+    return ExportResult(g2o_lines(graph), graph.summary)
+
+
+EXPORTER = Exporter(
+    "g2o",
+    "pose graph: vertices at camera frames, odometry and loop edges (needs --odometry-topic)",
+    True,
+    export,
+)

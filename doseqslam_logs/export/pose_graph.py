@@ -1,0 +1,252 @@
+"""A pose graph of an annotated log: camera frames as vertices placed by odometry, odometry
+edges between consecutive vertices, and one loop edge per reported loop closure.
+
+docs/export.md describes the measurement model; in short:
+
+* Vertices: the odometry pose (any pose topic) interpolated at each kept frame's detector time
+  (header stamp, else log time). Frames outside the odometry's time range are left out.
+* Odometry edges: the relative pose between consecutive vertices, with the inverse of the
+  odometry covariance (ROS order x, y, z, rot x, rot y, rot z, which is also the order of the
+  g2o information) times the number of frames the edge spans; `DEFAULT_ODOMETRY_SIGMAS` when
+  the messages carry no covariance, an all-zero one, or one that is not positive definite.
+* Loop edges, query vertex -> matched vertex (the refined match when verification recorded
+  one): identity relative pose, translation sigma `loop_translation_sigma_m` on each axis
+  (low information: the two cameras saw the same place, from an unknown distance), rotation
+  sigma `loop_rotation_sigma_deg`. A placeholder for a geometric measurement. When
+  verification recorded the pair's relative rotation, that rotation (camera optical axes
+  turned into body axes, x forward, y left, z up) replaces the identity rotation; the
+  translation stays zero with the same low information, since its scale is unknown.
+
+Information matrices are over (x, y, z, rotation angle in rad about x, y, z), the way GTSAM
+and Ceres read a g2o file (g2o itself reads the rotation block as information on the
+quaternion's vector part, about half the angle; there rotations weigh 4 times less).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from ..annotated import AnnotatedLog
+from ..errors import SourceError
+from ..poses import PoseTrack, read_poses
+from .base import ExportOptions
+from .loops import frame_times_ns, matched_index
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+# Odometry edge sigmas when the messages carry no usable covariance: (x, y, z) in metres and
+# (rot x, rot y, rot z) in radians, per camera frame.
+DEFAULT_ODOMETRY_SIGMAS = (0.1, 0.1, 0.1, 0.02, 0.02, 0.02)
+
+# A variance this large marks an axis the odometry does not measure (ROS: 1e6, 99999).
+UNMEASURED_VARIANCE = 1e3
+
+# Camera optical axes (x right, y down, z forward) in body axes (x forward, y left, z up).
+OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+EdgeKind = Literal["odometry", "loop"]
+
+
+@dataclass(frozen=True)
+class Edge:
+    """A relative-pose measurement: pose of vertex `to_id` in the frame of vertex `from_id`."""
+
+    kind: EdgeKind
+    from_id: int
+    to_id: int
+    translation: F64  # (3,)
+    quaternion_xyzw: F64  # (4,)
+    information: F64  # (6, 6) over x, y, z, rot x, rot y, rot z
+
+
+@dataclass(frozen=True)
+class PoseGraph:
+    """Vertices (frame indices and their poses) and edges, plus what was left out."""
+
+    vertex_ids: I64  # frame indices, ascending
+    poses: PoseTrack  # the vertices' poses, at their detector times
+    odometry_edges: list[Edge]
+    loop_edges: list[Edge]
+    frames_outside_odometry: int  # frames before the first or after the last odometry pose
+    loop_closures_left_out: int  # loop closures with a frame outside the odometry
+    default_information_edges: int  # odometry edges without a usable covariance
+
+    @property
+    def summary(self) -> str:
+        text = (
+            f"{len(self.vertex_ids)} vertices, {len(self.odometry_edges)} odometry edges, "
+            f"{len(self.loop_edges)} loop edges"
+        )
+        notes = []
+        if self.frames_outside_odometry:
+            notes.append(f"{self.frames_outside_odometry} frames outside the odometry left out")
+        if self.loop_closures_left_out:
+            notes.append(f"{self.loop_closures_left_out} loop closures on such frames left out")
+        if self.default_information_edges:
+            notes.append(
+                f"{self.default_information_edges} odometry edges without a covariance "
+                "use the default information"
+            )
+        return text + (f" ({'; '.join(notes)})" if notes else "")
+
+
+def build_pose_graph(log: AnnotatedLog, options: ExportOptions) -> PoseGraph:
+    """The pose graph of `log` with `options.odometry_topic` from `options.poses_log` (default:
+    the annotated log itself).
+
+    Raises SourceError when the log has no frame times, the topic cannot be read, or no frame
+    lies within the odometry's time range.
+    """
+    if options.odometry_topic is None:
+        raise ValueError("build_pose_graph needs options.odometry_topic")
+    times = frame_times_ns(log)
+    odometry = read_poses(options.poses_log or log.path, options.odometry_topic)
+    inside = (times >= odometry.times_ns[0]) & (times <= odometry.times_ns[-1])
+    if not inside.any():
+        raise SourceError(
+            f"{options.poses_log or log.path}: no camera frame lies within the time range of "
+            f"{options.odometry_topic} ({len(times)} frames)"
+        )
+    loops = log.reported_loop_closures
+    ids = _kept_frames(inside, loops, options.stride)
+    poses = odometry.interpolate(times[ids])
+    odometry_edges, defaults = _odometry_edges(ids, poses)
+    kept = set(ids.tolist())
+    loop_edges = [
+        _loop_edge(lc, options)
+        for lc in loops
+        if int(lc["query_index"]) in kept and matched_index(lc) in kept
+    ]
+    return PoseGraph(
+        vertex_ids=ids,
+        poses=poses,
+        odometry_edges=odometry_edges,
+        loop_edges=loop_edges,
+        frames_outside_odometry=int(np.count_nonzero(~inside)),
+        loop_closures_left_out=len(loops) - len(loop_edges),
+        default_information_edges=defaults,
+    )
+
+
+def _kept_frames(inside: npt.NDArray[np.bool_], loops: list[dict[str, Any]], stride: int) -> I64:
+    """Every stride-th frame, the first and last frame with odometry, and every loop frame."""
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    indices = np.flatnonzero(inside)
+    wanted = np.zeros(len(inside), dtype=bool)
+    wanted[indices[indices % stride == 0]] = True
+    wanted[[indices[0], indices[-1]]] = True
+    for lc in loops:
+        for index in (int(lc["query_index"]), matched_index(lc)):
+            if 0 <= index < len(wanted):
+                wanted[index] = True
+    return np.flatnonzero(wanted & inside).astype(np.int64)
+
+
+# ---------------------------------------------------------------------------------------------
+# Edges
+
+
+def _rotation(quaternion_xyzw: F64) -> Rotation:
+    return Rotation.from_quat(quaternion_xyzw)
+
+
+def relative_pose(
+    position_a: F64, quaternion_a: F64, position_b: F64, quaternion_b: F64
+) -> tuple[F64, F64]:
+    """Pose b in the frame of pose a (T_a^-1 T_b): translation and quaternion xyzw."""
+    inverse_a = _rotation(quaternion_a).inv()
+    translation = inverse_a.apply(position_b - position_a)
+    quaternion = (inverse_a * _rotation(quaternion_b)).as_quat()
+    return np.asarray(translation, np.float64), _positive_w(np.asarray(quaternion, np.float64))
+
+
+def _positive_w(quaternion: F64) -> F64:
+    return -quaternion if quaternion[3] < 0 else quaternion
+
+
+def information_from_covariance(covariance: F64 | None, frames_spanned: int) -> F64 | None:
+    """The inverse of `covariance` * frames_spanned; None when it is absent, all zero, not
+    finite or not positive definite (the caller uses the default then).
+
+    An axis with a variance of at least `UNMEASURED_VARIANCE` (ROS drivers write 1e6 or 99999
+    for an axis they do not measure, e.g. z, roll and pitch of wheel odometry) gets the
+    default sigma instead: left almost free, it would let loop edges tilt the graph out of
+    the plane the odometry reports.
+    """
+    if covariance is None or not np.isfinite(covariance).all() or not covariance.any():
+        return None
+    symmetric = (covariance + covariance.T) / 2
+    unmeasured = np.diagonal(symmetric) >= UNMEASURED_VARIANCE
+    symmetric[unmeasured, :] = 0.0
+    symmetric[:, unmeasured] = 0.0
+    defaults = np.square(np.asarray(DEFAULT_ODOMETRY_SIGMAS))
+    symmetric[unmeasured, unmeasured] = defaults[unmeasured]
+    symmetric *= frames_spanned
+    if np.linalg.eigvalsh(symmetric).min() <= 0:
+        return None
+    information = np.linalg.inv(symmetric)
+    return np.asarray((information + information.T) / 2, np.float64)
+
+
+def default_information(sigmas: tuple[float, ...], frames_spanned: int = 1) -> F64:
+    variances = np.square(np.asarray(sigmas, np.float64)) * frames_spanned
+    return np.diag(1.0 / variances)
+
+
+def _odometry_edges(ids: I64, poses: PoseTrack) -> tuple[list[Edge], int]:
+    edges, defaults = [], 0
+    for k in range(1, len(ids)):
+        translation, quaternion = relative_pose(
+            poses.positions[k - 1],
+            poses.quaternions_xyzw[k - 1],
+            poses.positions[k],
+            poses.quaternions_xyzw[k],
+        )
+        span = int(ids[k] - ids[k - 1])
+        covariance = None if poses.covariances is None else poses.covariances[k]
+        information = information_from_covariance(covariance, span)
+        if information is None:
+            defaults += 1
+            information = default_information(DEFAULT_ODOMETRY_SIGMAS, span)
+        edges.append(
+            Edge("odometry", int(ids[k - 1]), int(ids[k]), translation, quaternion, information)
+        )
+    return edges, defaults
+
+
+def verified_body_rotation(loop_closure: dict[str, Any]) -> F64 | None:
+    """The match camera's orientation in the query camera's frame, in body axes, from the
+    verification's R (X_match = R X_query + t, optical axes); None when not recorded."""
+    rotation = loop_closure.get("rotation_xyzw")
+    if not loop_closure.get("has_relative_pose", False) or rotation is None or len(rotation) != 4:
+        return None
+    values = np.asarray(rotation, np.float64)
+    if not np.isfinite(values).all() or np.linalg.norm(values) < 1e-9:
+        return None
+    match_in_query = _rotation(values).inv().as_matrix()  # R^T, optical axes
+    body = OPTICAL_TO_BODY @ match_in_query @ OPTICAL_TO_BODY.T
+    return _positive_w(np.asarray(Rotation.from_matrix(body).as_quat(), np.float64))
+
+
+def _loop_edge(loop_closure: dict[str, Any], options: ExportOptions) -> Edge:
+    quaternion = np.array([0.0, 0.0, 0.0, 1.0])
+    if options.use_verified_rotation:
+        verified = verified_body_rotation(loop_closure)
+        if verified is not None:
+            quaternion = verified
+    sigmas = (options.loop_translation_sigma_m,) * 3 + (options.loop_rotation_sigma_rad,) * 3
+    return Edge(
+        "loop",
+        int(loop_closure["query_index"]),
+        matched_index(loop_closure),
+        np.zeros(3),
+        quaternion,
+        default_information(sigmas),
+    )

@@ -1,0 +1,280 @@
+"""Pose tracks from a log: odometry or ground truth, and interpolation at other times.
+
+`read_poses(path, topic)` reads one pose topic of an MCAP file (any profile: ROS 2, ROS 1,
+Foxglove protobuf or JSON) or a ROS 1 / rosbag2 bag. Supported message types:
+nav_msgs/Odometry, geometry_msgs/PoseStamped, geometry_msgs/PoseWithCovarianceStamped (ROS 1
+and ROS 2 spellings) and foxglove.PoseInFrame (what the Foxglove sample logs carry).
+
+Each pose is timed by its header stamp (Foxglove: its `timestamp`); a stamp of 0 (unset) falls
+back to the message's log time, as the detector's clock does. Poses are sorted by that time and
+a pose whose time repeats an earlier one is dropped (keeping the first), so times are strictly
+ascending and interpolation is well defined.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import DoseqslamError, SourceError
+from .sources.base import MCAP_MAGIC
+from .sources.mcap_source import DESERIALIZERS, McapSource, describe_read_error
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+# Canonical names (ROS 1 spelling); ROS 2 inserts "/msg/".
+ODOMETRY = "nav_msgs/Odometry"
+POSE_STAMPED = "geometry_msgs/PoseStamped"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/PoseWithCovarianceStamped"
+FOXGLOVE_POSE_IN_FRAME = "foxglove.PoseInFrame"
+POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, FOXGLOVE_POSE_IN_FRAME)
+_WITH_COVARIANCE = (ODOMETRY, POSE_WITH_COVARIANCE_STAMPED)
+
+# Below this angle between two quaternions slerp is numerically lerp.
+_SLERP_LINEAR_BELOW_RAD = 1e-6
+
+
+@dataclass(frozen=True)
+class PoseTrack:
+    """Timed poses of one topic; the arrays share their first dimension N."""
+
+    topic: str
+    times_ns: I64  # strictly ascending (header stamp; log time when none)
+    positions: F64  # (N, 3)
+    quaternions_xyzw: F64  # (N, 4), unit
+    covariances: F64 | None  # (N, 6, 6) in ROS order (x, y, z, rot x, rot y, rot z), or None
+
+    def __len__(self) -> int:
+        return int(self.times_ns.shape[0])
+
+    def interpolate(self, times_ns: npt.ArrayLike) -> PoseTrack:
+        """The poses at `times_ns` (non-decreasing): positions (and covariances) linearly
+        interpolated, orientations by slerp along the shorter arc.
+
+        Raises ValueError when a time lies outside [first, last] of the track (the message says
+        how many and the range) or the times decrease.
+        """
+        query = np.asarray(times_ns, dtype=np.int64).reshape(-1)
+        if query.size > 1 and (np.diff(query) < 0).any():
+            raise ValueError(f"{self.topic}: interpolation times must be non-decreasing")
+        self._check_range(query)
+        lower = np.clip(np.searchsorted(self.times_ns, query, side="right") - 1, 0, len(self) - 1)
+        upper = np.minimum(lower + 1, len(self) - 1)
+        span = (self.times_ns[upper] - self.times_ns[lower]).astype(np.float64)
+        offset = (query - self.times_ns[lower]).astype(np.float64)
+        fraction = np.divide(offset, span, out=np.zeros_like(offset), where=span > 0)
+        weight = fraction[:, None]
+        positions = (1 - weight) * self.positions[lower] + weight * self.positions[upper]
+        quaternions = slerp(self.quaternions_xyzw[lower], self.quaternions_xyzw[upper], fraction)
+        covariances = None
+        if self.covariances is not None:
+            w3 = fraction[:, None, None]
+            covariances = (1 - w3) * self.covariances[lower] + w3 * self.covariances[upper]
+        return PoseTrack(self.topic, query, positions, quaternions, covariances)
+
+    def _check_range(self, query: I64) -> None:
+        if len(self) == 0:
+            if query.size:
+                raise ValueError(f"{self.topic}: no poses to interpolate {query.size} times")
+            return
+        first, last = int(self.times_ns[0]), int(self.times_ns[-1])
+        outside = int(np.count_nonzero((query < first) | (query > last)))
+        if outside:
+            raise ValueError(
+                f"{self.topic}: {outside} of {query.size} times lie outside the poses' range "
+                f"[{first}, {last}] ns ({(last - first) / 1e9:.3f} s)"
+            )
+
+
+def slerp(q0: F64, q1: F64, fraction: F64) -> F64:
+    """Row-wise spherical interpolation between unit quaternions (..., 4) along the shorter
+    arc; fraction 0 gives q0, 1 gives q1 (or -q1: the same rotation). Rows come out unit."""
+    q1 = np.where((np.sum(q0 * q1, axis=-1) < 0)[..., None], -q1, q1)
+    cosine = np.clip(np.sum(q0 * q1, axis=-1), -1.0, 1.0)
+    angle = np.arccos(cosine)
+    small = angle < _SLERP_LINEAR_BELOW_RAD
+    sine = np.where(small, 1.0, np.sin(angle))
+    w0 = np.where(small, 1 - fraction, np.sin((1 - fraction) * angle) / sine)
+    w1 = np.where(small, fraction, np.sin(fraction * angle) / sine)
+    result = w0[..., None] * q0 + w1[..., None] * q1
+    normalized: F64 = result / np.linalg.norm(result, axis=-1, keepdims=True)
+    return normalized
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+
+@dataclass
+class _Pose:
+    time_ns: int
+    position: list[float]  # x, y, z
+    quaternion: list[float]  # x, y, z, w
+    covariance: list[float] | None
+
+
+def canonical_type(name: str) -> str:
+    """ROS 2 names to ROS 1 ones: nav_msgs/msg/Odometry -> nav_msgs/Odometry."""
+    return name.replace("/msg/", "/")
+
+
+def read_poses(path: str | Path, topic: str) -> PoseTrack:
+    """Every pose of `topic` in the log at `path` (MCAP, ROS 1 .bag, rosbag2 folder or .db3).
+
+    Raises SourceError (one line naming the file and the topic) when the log cannot be read,
+    the topic is missing, its message type is not a supported pose type, it holds no messages,
+    or a pose is not finite or has a zero quaternion.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or directory")
+    poses = list(_mcap_poses(path, topic) if _is_mcap(path) else _bag_poses(path, topic))
+    if not poses:
+        raise SourceError(f"{path}: topic {topic!r} holds no messages")
+    return _track(path, topic, poses)
+
+
+def _is_mcap(path: Path) -> bool:
+    if path.is_dir():
+        return False
+    try:
+        with path.open("rb") as file:
+            return file.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError as exc:
+        raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+
+
+def _check_type(path: Path, topic: str, type_names: list[str]) -> str:
+    """The topic's canonical pose type; SourceError for a missing topic or another type."""
+    if not type_names:
+        raise SourceError(f"{path}: topic {topic!r} is not in the log")
+    kinds = {canonical_type(name) for name in type_names}
+    if len(kinds) != 1 or next(iter(kinds)) not in POSE_TYPES:
+        raise SourceError(
+            f"{path}: topic {topic!r} is {', '.join(sorted(set(type_names)))}, not a supported "
+            f"pose type ({', '.join(POSE_TYPES)})"
+        )
+    return kinds.pop()
+
+
+def _mcap_poses(path: Path, topic: str) -> Iterator[_Pose]:
+    with McapSource(path) as source:
+        channels = {c.topic: c for c in source.channels()}  # SourceError when damaged
+    channel_info = channels.get(topic)
+    kind = _check_type(path, topic, channel_info.message_type.split(", ") if channel_info else [])
+    from mcap.reader import make_reader
+
+    decoders: dict[int, Callable[[bytes], Any]] = {}
+    try:
+        with path.open("rb") as file:
+            for schema, channel, message in make_reader(file).iter_messages(topics=[topic]):
+                if schema is None:
+                    raise SourceError(f"{path}: topic {topic!r} has no schema")
+                if schema.id not in decoders:
+                    decoders[schema.id] = _mcap_decoder(path, topic, schema, channel)
+                yield _pose(kind, decoders[schema.id](message.data), message.log_time)
+    except DoseqslamError:
+        raise
+    except Exception as exc:
+        raise SourceError(
+            f"{path}: cannot read the messages of {topic} ({describe_read_error(exc)})"
+        ) from exc
+
+
+def _mcap_decoder(path: Path, topic: str, schema: Any, channel: Any) -> Callable[[bytes], Any]:
+    build = DESERIALIZERS.get((channel.message_encoding, schema.encoding))
+    if build is None:
+        raise SourceError(
+            f"{path}: topic {topic!r} uses encoding {channel.message_encoding}/{schema.encoding}, "
+            "which is not supported"
+        )
+    with contextlib.redirect_stderr(io.StringIO()):  # mcap_ros2 prints before raising
+        return build(schema)
+
+
+def _bag_poses(path: Path, topic: str) -> Iterator[_Pose]:
+    # The sources' opener gives the same one-line errors for every bag layout.
+    from .sources.rosbags_source import _open_reader
+
+    reader = _open_reader(path)
+    try:
+        connections = [c for c in reader.connections if c.topic == topic]
+        kind = _check_type(path, topic, [c.msgtype for c in connections])
+        for connection, log_time, payload in reader.messages(connections=connections):
+            yield _pose(kind, reader.deserialize(payload, connection.msgtype), log_time)
+    except DoseqslamError:
+        raise
+    except Exception as exc:
+        raise SourceError(f"{path}: cannot read the messages of {topic} ({exc})") from exc
+    finally:
+        reader.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Message fields (ROS objects, protobuf objects, or dicts from Foxglove JSON)
+
+
+def _field(value: Any, *names: str) -> Any:
+    for name in names:
+        if isinstance(value, dict) and name in value:
+            return value[name]
+        if not isinstance(value, dict) and hasattr(value, name):
+            return getattr(value, name)
+    return None
+
+
+def _stamp_ns(stamp: Any) -> int:
+    """ROS Time (sec, nanosec / nsec) or protobuf Timestamp (seconds, nanos); 0 when absent."""
+    if stamp is None:
+        return 0
+    seconds = _field(stamp, "sec", "seconds", "secs") or 0
+    nanos = _field(stamp, "nanosec", "nsec", "nanos", "nsecs") or 0
+    return int(seconds) * 1_000_000_000 + int(nanos)
+
+
+def _pose(kind: str, message: Any, log_time_ns: int) -> _Pose:
+    if kind == FOXGLOVE_POSE_IN_FRAME:
+        stamp = _stamp_ns(_field(message, "timestamp"))
+        pose, covariance = _field(message, "pose"), None
+    else:
+        stamp = _stamp_ns(_field(_field(message, "header"), "stamp"))
+        pose = _field(message, "pose")
+        covariance = None
+        if kind in _WITH_COVARIANCE:  # PoseWithCovariance: the pose and its covariance
+            covariance = [float(v) for v in _field(pose, "covariance")]
+            pose = _field(pose, "pose")
+    position = _components(_field(pose, "position"), "xyz")
+    quaternion = _components(_field(pose, "orientation"), "xyzw")
+    return _Pose(stamp if stamp > 0 else log_time_ns, position, quaternion, covariance)
+
+
+def _components(value: Any, axes: str) -> list[float]:
+    # Protobuf and JSON leave zero components out.
+    return [float(_field(value, axis) or 0.0) for axis in axes]
+
+
+def _track(path: Path, topic: str, poses: list[_Pose]) -> PoseTrack:
+    poses.sort(key=lambda pose: pose.time_ns)  # stable: the first of equal times comes first
+    times = np.array([pose.time_ns for pose in poses], dtype=np.int64)
+    keep = np.concatenate([[True], np.diff(times) > 0])
+    positions = np.array([pose.position for pose in poses], dtype=np.float64)[keep]
+    quaternions = np.array([pose.quaternion for pose in poses], dtype=np.float64)[keep]
+    norms = np.linalg.norm(quaternions, axis=1)
+    if not (np.isfinite(positions).all() and np.isfinite(norms).all()):
+        raise SourceError(f"{path}: topic {topic!r} holds poses that are not finite")
+    if (norms < 1e-9).any():
+        count = int(np.count_nonzero(norms < 1e-9))
+        raise SourceError(f"{path}: topic {topic!r} has {count} poses with a zero quaternion")
+    covariances = None
+    if poses[0].covariance is not None:
+        matrices = np.array([pose.covariance for pose in poses], dtype=np.float64)
+        covariances = matrices.reshape(-1, 6, 6)[keep]
+    return PoseTrack(topic, times[keep], positions, quaternions / norms[:, None], covariances)

@@ -1,0 +1,406 @@
+"""`evaluate OUT.mcap`: the figures of an annotated log equal those of the in-memory run; ground
+truth from the log's poses agrees with the sample's committed matrix; errors and exit codes."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from doseqslam_logs.annotate import AnnotateOptions, AnnotateResult, annotate_log
+from doseqslam_logs.annotated import AnnotatedLog, read_annotations
+from doseqslam_logs.cli import evaluate_log
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.detector import Parameters
+from doseqslam_logs.errors import ExitCode, GroundTruthError
+from doseqslam_logs.evaluation.annotated_log import (
+    evaluate_annotated_log,
+    format_log_report,
+    raw_decisions,
+)
+from doseqslam_logs.evaluation.groundtruth import GroundTruth, load_ground_truth
+from doseqslam_logs.evaluation.metrics import evaluate
+from doseqslam_logs.evaluation.pose_ground_truth import (
+    LoopCriteria,
+    frame_pose_times,
+    frame_poses,
+    loop_cells,
+    pose_ground_truth,
+    yaw_from_quaternions,
+)
+from doseqslam_logs.poses import read_poses
+from doseqslam_logs.sinks.messages import FrameTimes
+from doseqslam_logs.sources import open_source
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
+LOG = SAMPLES / "drive_loops.ros2.mcap"
+GT = SAMPLES / "drive_loops.gt.npz"
+POSES = "/ground_truth/pose"
+# How tools/make_sample_logs.py made the committed ground truth (sample_logs/README.md).
+SAMPLE_GT = ["--radius", "2", "--max-heading", "20", "--min-travel", "20"]
+
+
+@pytest.fixture(scope="module")
+def annotated(tmp_path_factory) -> tuple[Path, AnnotateResult]:
+    out = tmp_path_factory.mktemp("evaluate_log") / "drive_loops.annotated.mcap"
+    return out, annotate_log(LOG, out, Parameters())
+
+
+@pytest.fixture(scope="module")
+def sidecar(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("evaluate_log_sidecar") / "drive_loops.sidecar.mcap"
+    annotate_log(LOG, out, Parameters(), AnnotateOptions(sidecar=True))
+    return out
+
+
+def run_cli(capsys, *argv: object) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+# -- the figures --------------------------------------------------------------------------
+
+
+def test_rebuilt_decisions_are_the_runs(annotated) -> None:
+    out, result = annotated
+    assert raw_decisions(read_annotations(out)) == result.replay.decisions
+
+
+@pytest.mark.parametrize("tolerance", [0, 3])
+def test_figures_equal_those_of_the_in_memory_run(annotated, tolerance) -> None:
+    out, result = annotated
+    gt = load_ground_truth(GT)
+    expected = evaluate(result.replay.decisions, gt, Parameters().threshold, tolerance)
+    got = evaluate_annotated_log(read_annotations(out), gt, tolerance)
+    assert got.raw == expected
+    assert got.verified is None  # the run recorded no verification
+    assert expected.tp + expected.fp == 47 and expected.gt_loop_events == 123
+
+
+def test_json_holds_the_in_memory_figures(annotated, capsys) -> None:
+    out, result = annotated
+    code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt", GT, "--json")
+    assert code == 0
+    doc = json.loads(stdout)
+    expected = evaluate(result.replay.decisions, load_ground_truth(GT), 0.75).to_json_dict()
+    assert {key: doc[key] for key in expected} == expected
+    assert doc["ground_truth"] == {"kind": "file", "file": str(GT), "variable": "gt"}
+    assert doc["verified"] is None and doc["plots"] == []
+    assert doc["parameters_hash"] == read_annotations(out).metadata["parameters_hash"]
+    assert doc["parameters"]["kappa_s"] == 40.0 and doc["image_topic"] == "/camera/image/compressed"
+    assert doc["source_file"] == LOG.name
+    assert len(doc["curve"]) > 1 and doc["threshold_at_r_p100"] is not None
+
+
+def test_text_report_names_the_run_and_the_figures(annotated, capsys) -> None:
+    out, _ = annotated
+    code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt", GT)
+    assert code == 0
+    lines = stdout.splitlines()
+    assert lines[0].startswith("doseqslam run recorded in")
+    assert read_annotations(out).metadata["parameters_hash"] in lines[0]
+    assert "reported pairs   : 47 (TP 47, FP 0)" in lines
+    assert "recall           : 38.21 % (47 of 123)" in lines
+    assert any(line.startswith("R@P100           : 38.21 % at th = ") for line in lines)
+
+
+def test_ground_truth_of_another_size_is_refused(annotated, capsys) -> None:
+    out, _ = annotated
+    code, _, err = run_cli(capsys, "evaluate", out, "--gt", SAMPLES / "drive_parked.gt.npz")
+    assert code == ExitCode.USAGE
+    assert "ground truth has 300 frames but" in err and "over 240 frames" in err
+    assert err.count("\n") == 1
+
+
+def test_size_check_without_frame_times_uses_the_sequences(annotated) -> None:
+    out, _ = annotated
+    log = read_annotations(out)
+    log.frame_times = None  # as annotated before frame times existed
+    assert evaluate_annotated_log(log, load_ground_truth(GT)).raw.tp == 47
+    with pytest.raises(GroundTruthError, match=r"has 241 frames but .* over 240 frames"):
+        evaluate_annotated_log(log, GroundTruth(241, [], []))
+
+
+# -- verified figures ---------------------------------------------------------------------
+
+
+def with_verification(log: AnnotatedLog) -> AnnotatedLog:
+    """The log as a verified run would record it: odd query frames rejected; the first
+    accepted pair refined onto frame 0 (so it turns false)."""
+    verified = copy.deepcopy(log)
+    for message in verified.sequences:
+        message["verification"] = "on"
+    accepted = [lc for lc in verified.loop_closures if lc["query_index"] % 2 == 0]
+    for lc in verified.loop_closures:
+        lc["verification"] = "accepted" if lc in accepted else "rejected"
+        lc["refined_match_index"] = lc["match_index"]
+    accepted[0]["refined_match_index"] = 0
+    return verified
+
+
+def test_verified_figures_count_accepted_pairs_at_their_refined_match(annotated) -> None:
+    out, _ = annotated
+    log = with_verification(read_annotations(out))
+    gt = load_ground_truth(GT)
+    result = evaluate_annotated_log(log, gt)
+    accepted = [lc for lc in log.loop_closures if lc["verification"] == "accepted"]
+    truth = [gt.is_true(lc["query_index"], lc["refined_match_index"]) for lc in accepted]
+    assert result.verified is not None
+    assert (result.verified.tp, result.verified.fp) == (sum(truth), len(truth) - sum(truth))
+    assert result.verified.fp == 1 and result.verified.tp == len(accepted) - 1
+    # Only pairs below th were verified: the verified sweep ends at the recorded threshold.
+    assert max(p.threshold for p in result.verified.curve) <= 0.75 + 1e-6
+    assert result.raw == evaluate_annotated_log(read_annotations(out), gt).raw
+    report = format_log_report(result)
+    assert "verified (accepted pairs)" in report
+    assert f"{len(accepted)} (TP {len(accepted) - 1}, FP 1)" in report
+
+
+@pytest.fixture(scope="module")
+def verified_run(tmp_path_factory) -> tuple[Path, AnnotateResult, float]:
+    """drive_loops annotated as the annotate command does: verified, at the verified th."""
+    from doseqslam_logs.verification import VERIFIED_THRESHOLD, VerificationParameters
+
+    out = tmp_path_factory.mktemp("evaluate_log_verified") / "drive_loops.verified.mcap"
+    params = Parameters(threshold=VERIFIED_THRESHOLD)
+    options = AnnotateOptions(verification=VerificationParameters())
+    return out, annotate_log(LOG, out, params, options), VERIFIED_THRESHOLD
+
+
+def test_verified_figures_of_a_verified_run_equal_the_in_memory_ones(verified_run) -> None:
+    from doseqslam_logs.evaluation.verified import verified_decisions
+
+    out, result, threshold = verified_run
+    assert result.verification is not None
+    gt = load_ground_truth(GT)
+    in_memory = verified_decisions(result.verification.decisions.values())
+    expected_verified = evaluate(in_memory, gt, threshold)
+    got = evaluate_annotated_log(read_annotations(out), gt)
+    assert got.raw == evaluate(result.replay.decisions, gt, threshold)
+    assert got.verified == expected_verified
+    assert got.verified.tp + got.verified.fp == result.loop_closures > 0
+    assert got.raw.tp + got.raw.fp > got.verified.tp + got.verified.fp
+
+
+def test_cli_reports_verified_figures_side_by_side(annotated, capsys, monkeypatch) -> None:
+    out, _ = annotated
+    log = with_verification(read_annotations(out))
+    monkeypatch.setattr(evaluate_log, "read_annotations", lambda path: log)
+    code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt", GT, "--json")
+    doc = json.loads(stdout)
+    assert code == 0 and doc["verified"]["fp"] == 1 and doc["tp"] == 47
+    assert doc["verified"]["tp"] + doc["verified"]["fp"] < doc["tp"] + doc["fp"]
+
+
+# -- ground truth from poses --------------------------------------------------------------
+
+
+def test_pose_ground_truth_of_the_log_is_the_committed_one(annotated, capsys) -> None:
+    out, _ = annotated
+    log = read_annotations(out)
+    assert log.frame_times is not None
+    times = frame_pose_times(log.frame_times, log.metadata["time_source"])
+    poses = frame_poses(read_poses(out, POSES), times)
+    committed = load_ground_truth(GT)
+    for travel in (20.0, None):  # the travel condition never binds on drive_loops
+        gt = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, travel))
+        assert gt.nnz == committed.nnz == 810
+        assert (gt.matrix != committed.matrix).nnz == 0
+    code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt-topic", POSES, *SAMPLE_GT, "--json")
+    doc = json.loads(stdout)
+    _, file_out, _ = run_cli(capsys, "evaluate", out, "--gt", GT, "--json")
+    from_file = json.loads(file_out)
+    assert code == 0 and doc["gt_file"].startswith(POSES)
+    for key in ("gt_loop_events", "tp", "fp", "recall", "r_p100", "recall_at_p90", "curve"):
+        assert doc[key] == from_file[key]
+    assert doc["ground_truth"]["min_age_s"] == 40.0
+    assert doc["ground_truth"]["frames_without_pose"] == 0
+
+
+def test_min_travel_keeps_a_parked_camera_from_revisiting_itself() -> None:
+    """drive_parked stands still for 60 s: without --min-travel its parked frames revisit each
+    other; with the sample's 20 m the ground truth is the committed one."""
+    log = SAMPLES / "drive_parked.ros2.mcap"
+    with open_source(log) as source:
+        pairs = [
+            (m.log_time_ns, m.header_stamp_ns)
+            for m in source.image_messages("/camera/image/compressed")
+        ]
+    poses = frame_poses(
+        read_poses(log, POSES), frame_pose_times(FrameTimes.from_pairs(pairs), "header")
+    )
+    committed = load_ground_truth(SAMPLES / "drive_parked.gt.npz")
+    strict = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, 20.0))
+    loose = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, None))
+    assert (strict.matrix != committed.matrix).nnz == 0
+    assert loose.nnz > committed.nnz and (committed.matrix > loose.matrix).nnz == 0
+
+
+def test_sidecar_reads_poses_from_the_source_log(annotated, sidecar, capsys) -> None:
+    code, _, err = run_cli(capsys, "evaluate", sidecar, "--gt-topic", POSES, "--radius", "2")
+    assert code == ExitCode.USAGE and "--source" in err
+    code, stdout, _ = run_cli(
+        capsys, "evaluate", sidecar, "--gt-topic", POSES, *SAMPLE_GT, "--source", LOG, "--json"
+    )
+    assert code == 0 and json.loads(stdout)["tp"] == 47
+    wrong = SAMPLES / "drive_parked.ros2.mcap"
+    code, _, err = run_cli(
+        capsys, "evaluate", sidecar, "--gt-topic", POSES, "--radius", "2", "--source", wrong
+    )
+    assert code == ExitCode.USAGE and "sha256 differs" in err
+
+
+# -- usage errors and exit codes ----------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("argv", "code", "message"),
+    [
+        (["evaluate", "--gt", "{gt}"], ExitCode.USAGE, "exactly one of"),
+        (["evaluate", "{out}", "--images", "/x", "--gt", "{gt}"], ExitCode.USAGE, "exactly one"),
+        (["evaluate", "{out}"], ExitCode.USAGE, "--gt GTFILE or --gt-topic"),
+        (
+            ["evaluate", "{out}", "--gt", "{gt}", "--gt-topic", POSES, "--radius", "2"],
+            ExitCode.USAGE,
+            "exactly one of --gt",
+        ),
+        (["evaluate", "{out}", "--gt-topic", POSES], ExitCode.USAGE, "needs --radius"),
+        (["evaluate", "{out}", "--gt", "{gt}", "--radius", "2"], ExitCode.USAGE, "--radius"),
+        (["evaluate", "{out}", "--gt", "{gt}", "--set", "kappa_s=1"], ExitCode.USAGE, "--set"),
+        (["evaluate", "{out}", "--gt", "{gt}", "--fps", "2"], ExitCode.USAGE, "--fps"),
+        (["evaluate", "{out}", "--gt", "{gt}", "--tolerance", "-1"], ExitCode.USAGE, "tolerance"),
+        (
+            ["evaluate", "{out}", "--gt", "{gt}", "--poses-topic", "/odom"],
+            ExitCode.USAGE,
+            "--plot",
+        ),
+        (
+            ["evaluate", "--images", "/x", "--fps", "1", "--gt", "{gt}", "--plot", "/tmp/p"],
+            ExitCode.USAGE,
+            "only with an annotated log",
+        ),
+        (["evaluate", "--images", "/x", "--gt", "{gt}"], ExitCode.USAGE, "--fps"),
+        (
+            ["evaluate", "{out}", "--gt-topic", POSES, "--radius", "-1"],
+            ExitCode.USAGE,
+            "--radius must be",
+        ),
+        (
+            ["evaluate", "{out}", "--gt-topic", "/nothing", "--radius", "2"],
+            ExitCode.UNREADABLE_INPUT,
+            "'/nothing' is not in the log",
+        ),
+        (
+            ["evaluate", "{out}", "--gt-topic", "/camera/camera_info", "--radius", "2"],
+            ExitCode.UNREADABLE_INPUT,
+            "not a supported pose type",
+        ),
+        (["evaluate", "/no/such.mcap", "--gt", "{gt}"], ExitCode.UNREADABLE_INPUT, "such.mcap"),
+        (["evaluate", "{log}", "--gt", "{gt}"], ExitCode.UNREADABLE_INPUT, "not annotated"),
+    ],
+)
+def test_errors_are_one_line_with_their_exit_code(annotated, capsys, argv, code, message) -> None:
+    out, _ = annotated
+    argv = [a.format(out=out, gt=GT, log=LOG) for a in argv]
+    got, _, err = run_cli(capsys, *argv)
+    assert got == code, err
+    assert err.count("\n") == 1 and err.startswith("doseqslam-logs: error: ") and message in err
+
+
+def test_plot_without_matplotlib_is_a_usage_error(annotated, capsys, monkeypatch, tmp_path) -> None:
+    out, _ = annotated
+    monkeypatch.delitem(sys.modules, "doseqslam_logs.plots", raising=False)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
+    code, stdout, err = run_cli(capsys, "evaluate", out, "--gt", GT, "--plot", tmp_path / "p")
+    assert code == ExitCode.USAGE and "doseqslam-logs[plot]" in err and stdout == ""
+    assert not (tmp_path / "p").exists()
+
+
+# -- the pose ground-truth math -----------------------------------------------------------
+
+
+def brute_force_cells(times, xyz, criteria, yaw) -> set[tuple[int, int]]:
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    cells = set()
+    for i in range(len(times)):
+        for j in range(i):
+            if np.linalg.norm(xyz[i] - xyz[j]) > criteria.radius_m:
+                continue
+            if times[i] - times[j] < round(criteria.min_age_s * 1e9):
+                continue
+            turn = abs((yaw[i] - yaw[j] + math.pi) % (2 * math.pi) - math.pi)
+            if criteria.max_heading_deg is not None and turn > math.radians(
+                criteria.max_heading_deg
+            ):
+                continue
+            if criteria.min_travel_m is not None and travelled[i] - travelled[j] < (
+                criteria.min_travel_m
+            ):
+                continue
+            cells.add((i, j))
+    return cells
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    data=st.data(),
+    n=st.integers(0, 40),
+    radius=st.floats(0.1, 3.0),
+    age=st.floats(0.0, 5.0),
+    heading=st.one_of(st.none(), st.floats(0.0, 180.0)),
+    travel=st.one_of(st.none(), st.floats(0.0, 10.0)),
+    batch=st.integers(1, 50),
+)
+def test_loop_cells_match_brute_force(data, n, radius, age, heading, travel, batch) -> None:
+    coordinate = st.floats(-3.0, 3.0, allow_nan=False)
+    xyz = np.array(
+        data.draw(st.lists(st.tuples(coordinate, coordinate, coordinate), min_size=n, max_size=n)),
+        dtype=np.float64,
+    ).reshape(n, 3)
+    steps = data.draw(st.lists(st.integers(0, 2_000_000_000), min_size=n, max_size=n))
+    times = np.cumsum(np.array(steps, dtype=np.int64))
+    yaw = np.array(data.draw(st.lists(st.floats(-4.0, 4.0), min_size=n, max_size=n)))
+    criteria = LoopCriteria(radius, age, heading, travel)
+    rows, cols = loop_cells(times, xyz, criteria, yaw, batch_neighbours=batch)
+    got = list(zip(rows.tolist(), cols.tolist(), strict=True))
+    assert got == sorted(got)  # row-major order, no duplicates
+    assert set(got) == brute_force_cells(times, xyz, criteria, yaw) and len(got) == len(set(got))
+
+
+def test_frames_without_a_pose_have_no_loop() -> None:
+    times = np.arange(6, dtype=np.int64) * 10**9
+    xyz = np.zeros((6, 3))
+    xyz[2] = np.nan
+    rows, cols = loop_cells(times, xyz, LoopCriteria(1.0, 2.0))
+    assert 2 not in rows and 2 not in cols
+    assert set(zip(rows.tolist(), cols.tolist(), strict=True)) == {
+        (i, j) for i in range(6) for j in range(i - 1) if 2 not in (i, j)
+    }
+
+
+@given(yaw=st.floats(-math.pi + 1e-9, math.pi), scale=st.floats(0.1, 10.0))
+def test_yaw_from_quaternions_inverts_a_rotation_about_z(yaw, scale) -> None:
+    quaternion = scale * np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+    assert yaw_from_quaternions(quaternion)[0] == pytest.approx(yaw, abs=1e-9)
+
+
+def test_frame_pose_times_follow_the_runs_clock() -> None:
+    frame_times = FrameTimes([100, 200, 300, 400], [150, -1, 0, 450])
+    assert frame_pose_times(frame_times, "header").tolist() == [150, 200, 300, 450]
+    assert frame_pose_times(frame_times, "log").tolist() == [100, 200, 300, 400]
+
+
+def test_criteria_are_checked() -> None:
+    from doseqslam_logs.errors import UsageError
+
+    for bad in ({"radius_m": 0.0}, {"max_heading_deg": 200.0}, {"min_travel_m": -1.0}):
+        with pytest.raises(UsageError):
+            LoopCriteria(**{"radius_m": 1.0, "min_age_s": 1.0, **bad})
