@@ -1,10 +1,18 @@
-"""The replay pipeline: frames -> detector -> decisions, with progress and counts."""
+"""The replay pipeline: frames -> detector -> decisions, with progress and counts.
+
+Three kinds of work run at once on a log: reading and decoding its images (`frames`), the
+per-frame `detector.prepare` (frame vector, features), and the sequential detector. The
+detector runs on the calling thread; with workers > 1 a reader thread iterates `frames` and a
+thread pool runs `prepare`, so the calling thread does nothing but the detector's own work.
+OpenCV releases the GIL, so both cores work. The decisions do not depend on `workers`.
+"""
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
-from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -12,6 +20,13 @@ from .detector import Detector, PreparedFrame, SequenceDecision
 from .frames import Frame
 
 ProgressCallback = Callable[[int], None]
+
+# Seconds a blocked queue operation waits before it checks whether the other side gave up.
+_POLL_S = 0.1
+# Prepared frames that may wait for the detector: a frame vector and up to max_features
+# descriptors each (about 64 KB with SIFT), so 256 frames take about 16 MB. Enough for the
+# pool to keep working through a long query (hundreds of frames at the end of an hour).
+LOOKAHEAD_FRAMES = 256
 
 
 @dataclass
@@ -23,6 +38,10 @@ class ReplayResult:
     wall_time_s: float = 0.0
     feature_detector: str = ""
     peak_detector_bytes: int = 0
+    # Seconds per detector stage (`StageTimes`: preprocess and features summed over the
+    # prepare threads, the rest on the detector's thread), plus "wait": the detector's thread
+    # waiting for the next prepared frame (reading, decoding and preparing lag behind).
+    stage_seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def loop_closures(self) -> int:
@@ -33,26 +52,118 @@ class ReplayResult:
         return self.frames / self.wall_time_s if self.wall_time_s > 0 else 0.0
 
 
+class _End:
+    """Queue marker: the frames ran out, or iterating them raised `error`."""
+
+    def __init__(self, error: BaseException | None = None) -> None:
+        self.error = error
+
+
+_Item = tuple[int, "Future[PreparedFrame]"]  # (detector timestamp, prepare result)
+
+
+class _Reader:
+    """A thread that iterates the frames and submits `prepare` for each, in order.
+
+    Two bounds keep memory flat: at most `in_flight` frames wait for or run `prepare` (they
+    hold a whole decoded image), and at most `lookahead` prepared frames wait for the detector
+    (they hold only a frame vector and features). The lookahead lets the prepare pool run
+    through the long queries of the sequential detector instead of idling. An exception
+    raised while iterating the frames is handed over and re-raised on the consumer's side
+    where the frame would have come.
+    """
+
+    def __init__(
+        self,
+        frames: Iterable[Frame],
+        detector: Detector,
+        pool: ThreadPoolExecutor,
+        in_flight: int,
+        lookahead: int,
+    ) -> None:
+        self._frames = frames
+        self._detector = detector
+        self._pool = pool
+        self._slots = threading.BoundedSemaphore(in_flight)
+        self._queue: queue.Queue[_Item | _End] = queue.Queue(lookahead)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="frame-reader", daemon=True)
+        self._thread.start()
+
+    def _wait(self, attempt: Callable[[], bool]) -> bool:
+        """Retries a timed-out blocking step; False when the consumer gave up meanwhile."""
+        while not self._stop.is_set():
+            if attempt():
+                return True
+        return False
+
+    def _put(self, item: _Item | _End) -> bool:
+        def attempt() -> bool:
+            try:
+                self._queue.put(item, timeout=_POLL_S)
+            except queue.Full:
+                return False
+            return True
+
+        return self._wait(attempt)
+
+    def _submit(self, frame: Frame) -> Future[PreparedFrame] | None:
+        if not self._wait(lambda: self._slots.acquire(timeout=_POLL_S)):
+            return None
+        future = self._pool.submit(self._detector.prepare, frame.image)
+        future.add_done_callback(lambda _: self._slots.release())
+        return future
+
+    def _run(self) -> None:
+        iterator = iter(self._frames)
+        try:
+            for frame in iterator:
+                future = self._submit(frame)
+                if future is None or not self._put((frame.timestamp_ns, future)):
+                    break
+            else:
+                self._put(_End())
+        except BaseException as exc:  # handed to the consumer, which raises it
+            self._put(_End(exc))
+        finally:
+            close = getattr(iterator, "close", None)
+            if close is not None:
+                close()  # a generator stopped early releases its files here, on its thread
+
+    def items(self) -> Generator[_Item, None, None]:
+        """The (timestamp, prepare future) pairs in order; raises what iterating raised."""
+        try:
+            while True:
+                item = self._queue.get()
+                if isinstance(item, _End):
+                    if item.error is not None:
+                        raise item.error
+                    return
+                yield item
+        finally:
+            self._stop.set()
+            self._thread.join()
+
+
 def prepared_frames(
-    frames: Iterable[Frame], detector: Detector, workers: int
-) -> Iterator[tuple[Frame, PreparedFrame]]:
-    """Frames with `detector.prepare` applied, in order; with workers > 1 a thread pool runs
-    prepare ahead (OpenCV releases the GIL, so the second core works while the detector
-    queries). At most 2 x workers frames are in flight, so memory stays bounded."""
+    frames: Iterable[Frame], detector: Detector, workers: int, lookahead: int = LOOKAHEAD_FRAMES
+) -> Generator[tuple[int, PreparedFrame], None, None]:
+    """(timestamp, `detector.prepare` of the image) of each frame, in order.
+
+    With workers > 1, a reader thread iterates (reads and decodes) the frames and a pool of
+    `workers` threads prepares up to `lookahead` of them ahead of the consumer (see `_Reader`).
+    """
     if workers <= 1:
         for frame in frames:
-            yield frame, detector.prepare(frame.image)
+            yield frame.timestamp_ns, detector.prepare(frame.image)
         return
     with ThreadPoolExecutor(workers, thread_name_prefix="prepare") as pool:
-        pending: deque[tuple[Frame, Future[PreparedFrame]]] = deque()
-        for frame in frames:
-            pending.append((frame, pool.submit(detector.prepare, frame.image)))
-            if len(pending) >= 2 * workers:
-                done, future = pending.popleft()
-                yield done, future.result()
-        while pending:
-            done, future = pending.popleft()
-            yield done, future.result()
+        items = _Reader(frames, detector, pool, 2 * workers, lookahead).items()
+        try:
+            for timestamp_ns, future in items:
+                yield timestamp_ns, future.result()
+        finally:
+            items.close()  # stops the reader thread before the pool shuts down
 
 
 def replay(
@@ -67,12 +178,25 @@ def replay(
     """
     result = ReplayResult(feature_detector=detector.feature_detector)
     start = time.perf_counter()
-    for frame, prepared in prepared_frames(frames, detector, workers):
-        result.decisions += detector.push_prepared(frame.timestamp_ns, prepared)
-        result.frames += 1
-        if progress is not None:
-            progress(result.frames)
+    waited = 0.0
+    stream = prepared_frames(frames, detector, workers)
+    try:
+        while True:
+            asked = time.perf_counter()
+            item = next(stream, None)
+            waited += time.perf_counter() - asked
+            if item is None:
+                break
+            timestamp_ns, prepared = item
+            result.decisions += detector.push_prepared(timestamp_ns, prepared)
+            result.frames += 1
+            if progress is not None:
+                progress(result.frames)
+    finally:
+        stream.close()  # on an exception: stops the reader thread and the pool
     result.decisions += detector.finish()
     result.wall_time_s = time.perf_counter() - start
     result.peak_detector_bytes = detector.memory_bytes
+    timings = getattr(detector, "timings", None)
+    result.stage_seconds = {**getattr(timings, "seconds", {}), "wait": waited}
     return result
