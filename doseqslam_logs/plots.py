@@ -3,7 +3,8 @@
 matplotlib is an optional extra (`pip install 'doseqslam-logs[plot]'`); this module imports it
 at import time, so callers import this module lazily and report its absence themselves. Figures
 are drawn with the object-oriented API (no pyplot, no backend switch: `Figure.savefig` renders
-with Agg) and written atomically as PNG.
+with Agg) and written atomically as PNG. Each `*_figure` function builds a picture's Figure;
+its `plot_*` twin writes it.
 """
 
 from __future__ import annotations
@@ -120,7 +121,7 @@ def _draw_curve(axes: Axes, evaluation: Evaluation, name: str, colour: str) -> N
         )
 
 
-def plot_pr_curve(path: Path, raw: Evaluation, verified: Evaluation | None, title: str) -> Path:
+def pr_curve_figure(raw: Evaluation, verified: Evaluation | None, title: str) -> Figure:
     """The precision-recall curve swept over f (raw, and verified when given)."""
     figure = Figure(figsize=(7.5, 6.0), layout="constrained")
     axes = figure.add_subplot()
@@ -137,7 +138,12 @@ def plot_pr_curve(path: Path, raw: Evaluation, verified: Evaluation | None, titl
         f"precision-recall over the decision threshold; ground truth {raw.gt_file} "
         f"({raw.gt_loop_events} loop events, tolerance +-{raw.tolerance} frames)",
     )
-    return _save(figure, path)
+    return figure
+
+
+def plot_pr_curve(path: Path, raw: Evaluation, verified: Evaluation | None, title: str) -> Path:
+    """Write `pr_curve_figure` as a PNG."""
+    return _save(pr_curve_figure(raw, verified, title), path)
 
 
 # -- difference matrix --------------------------------------------------------------------
@@ -165,13 +171,12 @@ def _gt_cells(gt: GroundTruth, matrix: DifferenceMatrix) -> npt.NDArray[np.bool_
     return mask
 
 
-def plot_difference_matrix(
-    path: Path,
+def difference_matrix_figure(
     matrix: DifferenceMatrix,
     detections: Sequence[Detection],
     gt: GroundTruth | None,
     title: str,
-) -> Path:
+) -> Figure:
     """The difference matrix (query frame down, database frame across) with the ground truth
     shaded and the run's pairs marked."""
     figure = Figure(figsize=(8.0, 7.6), layout="constrained")
@@ -222,20 +227,30 @@ def plot_difference_matrix(
         f"{enhanced} difference matrix, {sampled} ({matrix.values.shape[0]} x "
         f"{matrix.values.shape[1]}); dark = similar",
     )
-    return _save(figure, path)
+    return figure
+
+
+def plot_difference_matrix(
+    path: Path,
+    matrix: DifferenceMatrix,
+    detections: Sequence[Detection],
+    gt: GroundTruth | None,
+    title: str,
+) -> Path:
+    """Write `difference_matrix_figure` as a PNG."""
+    return _save(difference_matrix_figure(matrix, detections, gt, title), path)
 
 
 # -- trajectory ---------------------------------------------------------------------------
 
 
-def plot_trajectory(
-    path: Path,
+def trajectory_figure(
     track_positions: npt.NDArray[np.float64],
     frame_positions: npt.NDArray[np.float64],
     detections: Sequence[Detection],
     title: str,
     pose_topic: str,
-) -> Path:
+) -> Figure:
     """The path from the pose topic (x, y) with each pair drawn as a line between the query
     frame's and the matched frame's positions. Pairs whose frames have no pose are left out."""
     figure = Figure(figsize=(8.0, 7.0), layout="constrained")
@@ -270,4 +285,18 @@ def plot_trajectory(
         title,
         f"trajectory (x, y) from {pose_topic}; lines join each query frame to its matched frame",
     )
-    return _save(figure, path)
+    return figure
+
+
+def plot_trajectory(
+    path: Path,
+    track_positions: npt.NDArray[np.float64],
+    frame_positions: npt.NDArray[np.float64],
+    detections: Sequence[Detection],
+    title: str,
+    pose_topic: str,
+) -> Path:
+    """Write `trajectory_figure` as a PNG."""
+    return _save(
+        trajectory_figure(track_positions, frame_positions, detections, title, pose_topic), path
+    )

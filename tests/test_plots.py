@@ -15,7 +15,10 @@ from doseqslam_logs.detector import Parameters
 from doseqslam_logs.evaluation.difference_matrix import difference_matrix
 
 pytest.importorskip("matplotlib")
+from matplotlib.figure import Figure
 from matplotlib.image import imread
+
+from doseqslam_logs import plots
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOG = SAMPLES / "drive_loops.ros2.mcap"
@@ -76,6 +79,58 @@ def test_text_output_names_the_pictures(annotated, capsys, tmp_path) -> None:
     assert main(["evaluate", str(annotated), "--gt", str(GT), "--plot", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert f"wrote {tmp_path / 'pr_curve.png'}" in out
+
+
+# -- what a person reads ------------------------------------------------------------------
+
+
+@pytest.fixture
+def figures(monkeypatch) -> dict[str, Figure]:
+    """The Figures the CLI builds, by builder name (each still written as a PNG)."""
+    built: dict[str, Figure] = {}
+
+    def recording(name: str, build):
+        def record(*args, **kwargs) -> Figure:
+            built[name] = build(*args, **kwargs)
+            return built[name]
+
+        return record
+
+    for name in ["pr_curve_figure", "difference_matrix_figure", "trajectory_figure"]:
+        monkeypatch.setattr(plots, name, recording(name, getattr(plots, name)))
+    return built
+
+
+def test_titles_labels_and_legends(annotated, capsys, tmp_path, figures) -> None:
+    evaluate_json(
+        capsys, annotated, "--gt-topic", "/ground_truth/pose", "--radius", "2", "--plot", tmp_path
+    )
+    parameters_hash = read_annotations(annotated).metadata["parameters_hash"]
+    assert len(parameters_hash) == 16
+    assert sorted(figures) == ["difference_matrix_figure", "pr_curve_figure", "trajectory_figure"]
+    labels = {
+        "pr_curve_figure": ("recall", "precision"),
+        "difference_matrix_figure": ("database frame (match index)", "query frame index"),
+        "trajectory_figure": ("x (m)", "y (m)"),
+    }
+    for name, figure in figures.items():
+        title = figure.get_suptitle()
+        assert annotated.name in title, name
+        assert "/camera/image/compressed" in title, name
+        assert parameters_hash in title, name
+        axes = figure.axes[0]
+        assert axes.get_title(), name  # what the picture shows, under the run's title
+        assert (axes.get_xlabel(), axes.get_ylabel()) == labels[name]
+        legend = axes.get_legend()
+        assert legend is not None, name
+        assert all(text.get_text() for text in legend.get_texts()) and legend.get_texts(), name
+    legend = figures["difference_matrix_figure"].axes[0].get_legend()
+    assert legend is not None
+    texts = [text.get_text() for text in legend.get_texts()]
+    assert "ground-truth loop" in texts and any(t.startswith("loop closure, true") for t in texts)
+    colourbar = figures["difference_matrix_figure"].axes[1]  # the colour bar's own axes
+    assert colourbar.get_ylabel() == "enhanced difference"
+    assert "/ground_truth/pose" in figures["trajectory_figure"].axes[0].get_title()
 
 
 # -- the difference matrix ----------------------------------------------------------------
