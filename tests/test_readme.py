@@ -1,0 +1,230 @@
+"""The README's shown outputs are real: its `evaluate OUT.mcap`, `diff` and `export` blocks are
+parsed, their commands run on a fresh annotation of the sample, and the printed lines compared
+with the README's, with only machine-dependent fields (timings) masked. The `batch` block is
+left out (too slow)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import re
+import shlex
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from doseqslam_logs.cli.main import main
+
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+# The fresh annotation the diff and export blocks start from (the evaluate block shows it made).
+ANNOTATE = "annotate sample_logs/drive_loops.ros2.mcap -o drive_loops.annotated.mcap"
+
+# Timings: "6.1 s," "12.0 s;" (not "40 s apart"), "40 frames/s", "1.8 ms each".
+_MASKS = [
+    (re.compile(r"\b\d+(?:\.\d+)? s(?=[,;)])"), "<t> s"),
+    (re.compile(r"\b\d+ frames/s\b"), "<n> frames/s"),
+    (re.compile(r"\b\d+(?:\.\d+)? ms each\b"), "<t> ms each"),
+]
+
+
+def mask(line: str) -> str:
+    for pattern, replacement in _MASKS:
+        line = pattern.sub(replacement, line)
+    return line.rstrip()
+
+
+# -- the README ---------------------------------------------------------------------------
+
+
+@dataclass
+class Command:
+    line: str  # as shown after "$ ", continuation lines joined
+    expected: list[str] = field(default_factory=list)
+
+
+def section(heading: str) -> str:
+    """The text of the `### ` section whose heading starts with `heading`."""
+    text = README.read_text(encoding="utf-8")
+    parts = re.split(r"^### ", text, flags=re.MULTILINE)
+    found = [part for part in parts if part.startswith(heading)]
+    assert len(found) == 1, f"README section {heading!r} not found"
+    return found[0]
+
+
+def blocks(text: str) -> list[list[Command]]:
+    """Each ```text block (indented ones too) as its commands and their shown output."""
+    result = []
+    for match in re.finditer(r"^( *)```text\n(.*?)^\1```$", text, flags=re.MULTILINE | re.DOTALL):
+        indent = len(match.group(1))
+        commands: list[Command] = []
+        continued = False
+        for raw in match.group(2).splitlines():
+            line = raw[indent:]
+            if continued:
+                commands[-1].line = commands[-1].line[:-1].rstrip() + " " + line.strip()
+            elif line.startswith("$ "):
+                commands.append(Command(line[2:].strip()))
+            else:
+                assert commands, f"output before any command: {line!r}"
+                commands[-1].expected.append(line)
+            continued = line.endswith("\\")
+        assert commands, f"a block without commands:\n{match.group(2)}"
+        result.append(commands)
+    return result
+
+
+# -- running what the README shows --------------------------------------------------------
+
+
+class _Tee(io.StringIO):
+    """One stream (stdout or stderr) that also writes into the shared terminal."""
+
+    def __init__(self, terminal: io.StringIO) -> None:
+        super().__init__()
+        self.terminal = terminal
+
+    def write(self, text: str) -> int:
+        self.terminal.write(text)
+        return super().write(text)
+
+
+def jq(filter_: str, document: str) -> str:
+    """`jq -c` for a comma-separated list of plain paths (`.a, .b.c`), the README's one use."""
+    value = json.loads(document)
+    out = []
+    for path in filter_.split(","):
+        path = path.strip()
+        assert re.fullmatch(r"(\.[A-Za-z_]\w*)+", path), f"jq filter not emulated: {path!r}"
+        item = value
+        for key in path[1:].split("."):
+            item = item[key]
+        out.append(json.dumps(item, separators=(",", ":"), ensure_ascii=False) + "\n")
+    return "".join(out)
+
+
+@dataclass
+class Shell:
+    """Runs `$` lines in one folder: doseqslam-logs in-process, `head -N`, `echo $?`, `| jq -c`.
+    The same `annotate` command is run once (its output is byte-identical every time)."""
+
+    cwd: Path
+    status: int = 0
+    annotated: dict[str, tuple[int, str]] = field(default_factory=dict)
+
+    @contextlib.contextmanager
+    def _inside(self) -> Iterator[None]:
+        previous = Path.cwd()
+        os.chdir(self.cwd)
+        try:
+            yield
+        finally:
+            os.chdir(previous)
+
+    def _tool(self, argv: list[str]) -> tuple[int, str, str]:
+        terminal = io.StringIO()
+        out, err = _Tee(terminal), _Tee(terminal)
+        with self._inside(), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(argv)
+        return code, out.getvalue(), terminal.getvalue()
+
+    def run(self, line: str) -> str:
+        """What the line prints on the terminal; sets `status` like $?."""
+        words = shlex.split(line, comments=True)
+        stages = [list(group) for group in _split(words, "|")]
+        first = stages[0]
+        if first == ["echo", "$?"]:
+            return f"{self.status}\n"
+        if first[0] == "head":
+            assert len(first) == 3 and re.fullmatch(r"-\d+", first[1]), line
+            text = (self.cwd / first[2]).read_text(encoding="utf-8")
+            self.status = 0
+            return "".join(text.splitlines(keepends=True)[: int(first[1][1:])])
+        assert first[0] == "doseqslam-logs", f"command not emulated: {line}"
+        key = " ".join(first[1:])
+        if first[1] == "annotate" and key in self.annotated:
+            self.status, shown = self.annotated[key]
+            return shown
+        self.status, stdout, shown = self._tool(first[1:])
+        if first[1] == "annotate":
+            self.annotated[key] = (self.status, shown)
+        for stage in stages[1:]:
+            assert stage[:2] == ["jq", "-c"] and len(stage) == 3, f"not emulated: {stage}"
+            shown = shown.replace(stdout, "") + jq(stage[2], stdout)
+        return shown
+
+
+def _split(words: list[str], separator: str) -> Iterator[list[str]]:
+    group: list[str] = []
+    for word in words:
+        if word == separator:
+            yield group
+            group = []
+        else:
+            group.append(word)
+    yield group
+
+
+@pytest.fixture(scope="module")
+def shell(tmp_path_factory: pytest.TempPathFactory) -> Shell:
+    """A folder laid out like the repository root for the README's relative paths, holding a
+    fresh annotation of the sample."""
+    folder = tmp_path_factory.mktemp("readme")
+    (folder / "sample_logs").symlink_to(REPO / "sample_logs", target_is_directory=True)
+    shell = Shell(folder)
+    shell.run(f"doseqslam-logs {ANNOTATE}")
+    assert shell.status == 0
+    return shell
+
+
+def check_section(shell: Shell, heading: str, expected_blocks: int) -> None:
+    found = blocks(section(heading))
+    assert len(found) == expected_blocks, f"{heading}: {len(found)} text blocks"
+    for commands in found:
+        for index, command in enumerate(commands):
+            shown = shell.run(command.line)
+            followed_by_status = index + 1 < len(commands) and commands[index + 1].line == "echo $?"
+            if command.line == "echo $?":
+                followed_by_status = True  # its output is the status, compared below
+            allowed = {0, 1} if command.line.startswith("doseqslam-logs diff") else {0}
+            assert followed_by_status or shell.status in allowed, (command.line, shown)
+            actual = [mask(line) for line in shown.splitlines()]
+            expected = [mask(line) for line in command.expected]
+            if not expected and command.line.startswith("doseqslam-logs annotate"):
+                continue  # a set-up step shown without its summary line
+            assert actual == expected, f"$ {command.line}"
+
+
+def test_evaluate_annotated_log_blocks(shell: Shell) -> None:
+    pytest.importorskip("matplotlib")  # the second block draws the pictures
+    check_section(shell, "`evaluate OUT.mcap`", 2)
+    for name in ["pr_curve.png", "difference_matrix.png", "trajectory.png"]:
+        assert (shell.cwd / "docs" / "images" / name).is_file()
+
+
+def test_diff_blocks(shell: Shell) -> None:
+    check_section(shell, "`diff A.mcap B.mcap`", 3)
+
+
+def test_export_blocks(shell: Shell) -> None:
+    check_section(shell, "`export OUT.mcap", 1)
+
+
+def test_masks_hide_timings_only() -> None:
+    line = (
+        "x.mcap: 240 frames of /c, 22 sequences, 83 loop closures, 0 skipped frames, 6.1 s, "
+        "40 frames/s; verified 132 candidate pairs: 83 accepted (6061 frame pairs checked, "
+        "1.8 ms each, 12.0 s; essential matrix)"
+    )
+    assert mask(line) == (
+        "x.mcap: 240 frames of /c, 22 sequences, 83 loop closures, 0 skipped frames, <t> s, "
+        "<n> frames/s; verified 132 candidate pairs: 83 accepted (6061 frame pairs checked, "
+        "<t> ms each, <t> s; essential matrix)"
+    )
+    assert mask("(within 2 m, 20 deg, >= 40 s apart, >= 20 m driven)").endswith(
+        "40 s apart, >= 20 m driven)"
+    )
