@@ -140,10 +140,16 @@ def test_tum_is_the_odometry_at_every_camera_frame(
 
 
 def _g2o(text: str) -> dict[str, list[list[str]]]:
-    parsed: dict[str, list[list[str]]] = {"VERTEX_SE3:QUAT": [], "EDGE_SE3:QUAT": [], "FIX": []}
-    for line in text.splitlines():
+    """Lines by tag; "#" holds the leading comment lines (none may come later)."""
+    parsed: dict[str, list[list[str]]] = {
+        "#": [], "VERTEX_SE3:QUAT": [], "EDGE_SE3:QUAT": [], "FIX": []
+    }  # fmt: skip
+    lines = text.splitlines()
+    header = list(itertools.takewhile(lambda line: line.startswith("#"), lines))
+    parsed["#"] = [[line] for line in header]
+    for line in lines[len(header) :]:
         tag, *values = line.split()
-        parsed[tag].append(values)  # KeyError: an unexpected line
+        parsed[tag].append(values)  # KeyError: an unexpected line (a late comment too)
     return parsed
 
 
@@ -204,6 +210,34 @@ def test_g2o_identity_loop_rotation_and_sigmas(
     np.testing.assert_allclose(np.diag(_information(loops[0])), expected, rtol=1e-9)
 
 
+def test_g2o_header_states_the_loop_edge_model_and_gtsam_still_reads_the_file(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = [str(annotated), "--format", "g2o", "--odometry-topic", "/odom"]
+    _, out, _ = export(capsys, *args)
+    header = "\n".join(line for [line] in _g2o(out)["#"])
+    assert out.startswith("# ") and "placeholder measurement model" in header
+    assert "translation: zero, low information (sigma 3 m on x, y, z)" in header
+    assert "rotation: from geometric verification when recorded, else identity" in header
+    assert "(sigma 10 deg on each axis)" in header
+    _, identity, _ = export(
+        capsys, *args, "--identity-loop-rotation", "--loop-translation-sigma", "2.5",
+        "--loop-rotation-sigma", "4",
+    )  # fmt: skip
+    header = "\n".join(line for [line] in _g2o(identity)["#"])
+    assert "(sigma 2.5 m on x, y, z)" in header
+    assert "rotation: identity (--identity-loop-rotation) (sigma 4 deg on each axis)" in header
+
+    gtsam = pytest.importorskip("gtsam")
+    with_header, without = tmp_path / "with.g2o", tmp_path / "without.g2o"
+    with_header.write_text(out)
+    without.write_text("".join(line for line in out.splitlines(True) if not line.startswith("#")))
+    graph, initial = gtsam.readG2o(str(with_header), True)
+    assert initial.size() == 240 and graph.size() == len(_g2o(out)["EDGE_SE3:QUAT"]) > 239
+    bare_graph, bare_initial = gtsam.readG2o(str(without), True)
+    assert graph.equals(bare_graph, 0.0) and initial.equals(bare_initial, 0.0)
+
+
 def test_g2o_stride_keeps_every_kth_frame_and_the_loop_frames(
     annotated: Path, log: AnnotatedLog, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -242,7 +276,7 @@ def test_output_file_is_written_atomically(
         capsys, str(annotated), "--format", "g2o", "--odometry-topic", "/odom", "-o", str(target)
     )
     assert code == 0 and out == ""
-    assert target.read_text().startswith("VERTEX_SE3:QUAT 0 ")
+    assert "\nVERTEX_SE3:QUAT 0 " in target.read_text()
     assert f"{target}: 240 vertices" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["graph.g2o"]  # no temporary left
     before = target.read_bytes()

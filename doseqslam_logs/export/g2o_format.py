@@ -4,9 +4,11 @@
     EDGE_SE3:QUAT id1 id2 x y z qx qy qz qw I11 I12 .. I16 I22 .. I66
     FIX id
 
-Vertex ids are frame indices. Odometry edges come first, then loop edges (in log order). The
-information is the upper triangle of the 6 x 6 matrix, row by row. `FIX` holds the first
-vertex in g2o; GTSAM's readG2o ignores it (add a prior there).
+The file starts with `#` comment lines stating the loop edges' measurement model (a
+placeholder, docs/export.md); g2o and GTSAM's readG2o skip them. Vertex ids are frame indices.
+Odometry edges come first, then loop edges (in log order). The information is the upper
+triangle of the 6 x 6 matrix, row by row. `FIX` holds the first vertex in g2o; GTSAM's readG2o
+ignores it (add a prior there).
 """
 
 from __future__ import annotations
@@ -33,7 +35,25 @@ def edge_line(edge: Edge) -> str:
     return f"EDGE_SE3:QUAT {edge.from_id} {edge.to_id} {measurement} {information}\n"
 
 
-def g2o_lines(graph: PoseGraph) -> Iterator[str]:
+def header_lines(options: ExportOptions) -> list[str]:
+    """`#` lines: the loop edges are a placeholder model, not a measured relative pose."""
+    if options.use_verified_rotation:
+        rotation = "from geometric verification when recorded, else identity"
+    else:
+        rotation = "identity (--identity-loop-rotation)"
+    translation_sigma = f"{options.loop_translation_sigma_m:g} m"
+    rotation_sigma = f"{options.loop_rotation_sigma_deg:g} deg"
+    return [
+        "# doseqslam-logs pose graph. Loop edges (EDGE_SE3:QUAT after the odometry edges) use a\n",
+        "# placeholder measurement model, not a measured relative pose (docs/export.md):\n",
+        f"#   translation: zero, low information (sigma {translation_sigma} on x, y, z)\n",
+        f"#   rotation: {rotation} (sigma {rotation_sigma} on each axis)\n",
+        "# Information: upper triangle of the 6 x 6 matrix over x, y, z, rot x, rot y, rot z.\n",
+    ]
+
+
+def g2o_lines(graph: PoseGraph, options: ExportOptions) -> Iterator[str]:
+    yield from header_lines(options)
     for k, vertex_id in enumerate(graph.vertex_ids):
         pose = [*graph.poses.positions[k], *graph.poses.quaternions_xyzw[k]]
         yield f"VERTEX_SE3:QUAT {vertex_id} {_numbers(pose)}\n"
@@ -50,7 +70,7 @@ def require_odometry_topic(options: ExportOptions, format_name: str) -> None:
 def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
     require_odometry_topic(options, "g2o")
     graph = build_pose_graph(log, options)
-    return ExportResult(g2o_lines(graph), graph.summary)
+    return ExportResult(g2o_lines(graph, options), graph.summary)
 
 
 EXPORTER = Exporter(
