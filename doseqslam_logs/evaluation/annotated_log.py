@@ -23,7 +23,7 @@ from ..detector.events import Candidate, SequenceDecision
 from ..errors import GroundTruthError, UsageError
 from ..sinks.messages import NANOS_PER_SECOND, FrameTimes
 from .groundtruth import GroundTruth
-from .metrics import Evaluation, evaluate
+from .metrics import Evaluation, evaluate, format_side_by_side
 
 ACCEPTED = "accepted"
 REJECTED = "rejected"
@@ -189,42 +189,6 @@ def evaluate_annotated_log(log: AnnotatedLog, gt: GroundTruth, tolerance: int = 
 # -- report -------------------------------------------------------------------------------
 
 
-def _percent(value: float) -> str:
-    return f"{100 * value:.2f} %"
-
-
-def _column(e: Evaluation) -> list[str]:
-    """The figures that differ between raw and verified, one cell per report line."""
-    th = "-" if e.threshold_at_r_p100 is None else f"{e.threshold_at_r_p100:.6g}"
-    return [
-        f"{e.tp + e.fp} (TP {e.tp}, FP {e.fp})",
-        _percent(e.precision),
-        f"{_percent(e.recall)} ({e.tp} of {e.gt_loop_events})",
-        f"{_percent(e.r_p100)} at th = {th}",
-        _percent(e.recall_at_p90),
-    ]
-
-
-_ROWS = ("reported pairs", "precision", "recall", "R@P100", "recall at P>=0.9")
-
-
 def format_log_report(result: LogEvaluation) -> str:
     """The evaluation of an annotated log: shared facts, then raw and verified side by side."""
-    raw, verified = result.raw, result.verified
-    s = raw.lengths
-    lines = [
-        f"ground truth     : {raw.gt_file} ({raw.gt_frames} frames, {raw.gt_loop_events} loop "
-        f"events{', transposed from upper triangular' if raw.gt_transposed else ''})",
-        f"frames decided   : {raw.frames}",
-        f"sequences        : {raw.sequences} (length min {s.min}, median {s.median:g}, "
-        f"mean {s.mean:.2f}, max {s.max})",
-        f"threshold th     : {raw.threshold:g} (recorded; tolerance +-{raw.tolerance} frames); "
-        f"{raw.accepted_sequences} sequences below it",
-    ]
-    columns = [_column(raw)] + ([_column(verified)] if verified is not None else [])
-    width = max(len(cell) for cell in columns[0]) + 3
-    if verified is not None:
-        lines.append(f"{'':17}  {'raw (all candidates)':<{width}}verified (accepted pairs)")
-    for row, cells in zip(_ROWS, zip(*columns, strict=True), strict=True):
-        lines.append(f"{row:<17}: " + "".join(f"{cell:<{width}}" for cell in cells).rstrip())
-    return "\n".join(lines)
+    return format_side_by_side(result.raw, result.verified, "recorded")

@@ -316,5 +316,45 @@ def format_report(evaluation: Evaluation) -> str:
     return "\n".join(lines)
 
 
+def _column(e: Evaluation) -> list[str]:
+    """The figures that differ between raw and verified, one cell per report line."""
+    th = "-" if e.threshold_at_r_p100 is None else f"{e.threshold_at_r_p100:.6g}"
+    return [
+        f"{e.tp + e.fp} (TP {e.tp}, FP {e.fp})",
+        _percent(e.precision),
+        f"{_percent(e.recall)} ({e.tp} of {e.gt_loop_events})",
+        f"{_percent(e.r_p100)} at th = {th}",
+        _percent(e.recall_at_p90),
+    ]
+
+
+_ROWS = ("reported pairs", "precision", "recall", "R@P100", "recall at P>=0.9")
+
+
+def format_side_by_side(raw: Evaluation, verified: Evaluation | None, threshold_note: str) -> str:
+    """Shared facts of a run, then its raw figures (every candidate) and, when it was verified,
+    its verified ones (accepted pairs only) side by side (no trailing newline).
+
+    `threshold_note` says where th came from ("recorded" for an annotated log).
+    """
+    s = raw.lengths
+    lines = [
+        f"ground truth     : {raw.gt_file} ({raw.gt_frames} frames, {raw.gt_loop_events} loop "
+        f"events{', transposed from upper triangular' if raw.gt_transposed else ''})",
+        f"frames decided   : {raw.frames}",
+        f"sequences        : {raw.sequences} (length min {s.min}, median {s.median:g}, "
+        f"mean {s.mean:.2f}, max {s.max})",
+        f"threshold th     : {raw.threshold:g} ({threshold_note}; tolerance +-{raw.tolerance} "
+        f"frames); {raw.accepted_sequences} sequences below it",
+    ]
+    columns = [_column(raw)] + ([_column(verified)] if verified is not None else [])
+    width = max(len(cell) for cell in columns[0]) + 3
+    if verified is not None:
+        lines.append(f"{'':17}  {'raw (all candidates)':<{width}}verified (accepted pairs)")
+    for row, cells in zip(_ROWS, zip(*columns, strict=True), strict=True):
+        lines.append(f"{row:<17}: " + "".join(f"{cell:<{width}}" for cell in cells).rstrip())
+    return "\n".join(lines)
+
+
 def _percent(value: float) -> str:
     return f"{100 * value:.2f} %"
