@@ -24,8 +24,15 @@ def rtabmap_args(shared_data) -> list[str]:
 
 
 def test_evaluate_json_reports_the_rtabmap_figures(shared_data, capsys) -> None:
+    # The detector's own figures (--no-verify); the verified ones: test_evaluate_images_verified.
     code, out, _ = run_cli(
-        capsys, "evaluate", *rtabmap_args(shared_data), "--set", "kappa_s=10", "--json"
+        capsys,
+        "evaluate",
+        *rtabmap_args(shared_data),
+        "--set",
+        "kappa_s=10",
+        "--json",
+        "--no-verify",
     )
     assert code == 0
     doc = json.loads(out)
@@ -44,6 +51,7 @@ def test_evaluate_json_reports_the_rtabmap_figures(shared_data, capsys) -> None:
         "--set",
         f"threshold={th}",
         "--json",
+        "--no-verify",
     )
     again = json.loads(out)
     assert again["fp"] == 0 and again["recall"] == pytest.approx(doc["r_p100"])
@@ -51,7 +59,14 @@ def test_evaluate_json_reports_the_rtabmap_figures(shared_data, capsys) -> None:
 
 def test_evaluate_text_report_names_method_and_gt(shared_data, capsys) -> None:
     code, out, _ = run_cli(
-        capsys, "evaluate", *rtabmap_args(shared_data), "--method", "seqslam", "--set", "kappa_s=10"
+        capsys,
+        "evaluate",
+        *rtabmap_args(shared_data),
+        "--method",
+        "seqslam",
+        "--set",
+        "kappa_s=10",
+        "--no-verify",
     )
     assert code == 0
     assert out.startswith("seqslam on ") and "samples_GT.bmp" in out and "R@P100" in out

@@ -129,12 +129,13 @@ def run_parameters(args: argparse.Namespace) -> Parameters:
     Raises ParameterError as parameters_from_args.
     """
     params = parameters_from_args(args)
-    if getattr(args, "verify", False) and not _threshold_given(args):
+    if getattr(args, "verify", False) and not threshold_given(args):
         params = params.replace(threshold=VERIFIED_THRESHOLD)
     return params
 
 
-def _threshold_given(args: argparse.Namespace) -> bool:
+def threshold_given(args: argparse.Namespace) -> bool:
+    """True when --set or --config gave th."""
     if any(item.partition("=")[0].strip() == "threshold" for item in args.overrides):
         return True
     if args.config:  # already read and validated by parameters_from_args

@@ -1,0 +1,158 @@
+"""`evaluate --images` verifies the candidate pairs geometrically by default (as annotate does)
+and reports raw and verified figures side by side; `--no-verify` is the paper's report."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from doseqslam_logs.cli import evaluate as evaluate_cli
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.errors import ExitCode
+from doseqslam_logs.verification import VERIFIED_THRESHOLD, VerificationParameters
+
+# What `evaluate --images` printed on the RTAB-Map samples before verification existed (the
+# paper's decision); only the speed varies.
+PAPER_REPORT = """\
+doseqslam on {images} at 1 fps (features: sift, parameters ff26339be8201b4a, <n> frames/s)
+ground truth     : samples_GT.bmp (84 frames, 44 loop events)
+frames decided   : 84
+sequences        : 20 (length min 1, p10 2, p25 2, median 4, mean 4.20, p75 5.25, p90 6.2, max 9)
+threshold th     : 0.75 (tolerance +-0 frames); 3 sequences accepted
+reported pairs   : 9 (TP 9, FP 0)
+precision        : 100.00 %
+recall           : 20.45 % (9 of 44 loop events)
+R@P100           : 20.45 % at th = 0.73397
+recall at P>=0.9 : 20.45 %
+"""
+
+
+def _run(*argv: object) -> tuple[int, str]:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        code = main([str(a) for a in argv])
+    return code, out.getvalue()
+
+
+def _args(shared_data: Path) -> list[object]:
+    folder = shared_data / "rtabmap_samples_loop"
+    return [
+        "evaluate",
+        "--images",
+        folder / "images",
+        "--fps",
+        "1",
+        "--gt",
+        folder / "samples_GT.bmp",
+        "--set",
+        "kappa_s=10",
+    ]
+
+
+@pytest.fixture(scope="module")
+def verified_runs(shared_data: Path) -> tuple[str, dict[str, Any]]:
+    """The default (verified) report as text and as --json. The verification stage runs once
+    for both (the detector's decisions are the same; --json only changes the printing)."""
+    real = evaluate_cli._verify
+    memo: list[Any] = []
+
+    def verify_once(*args: Any) -> Any:
+        if not memo:
+            memo.append(real(*args))
+        return memo[0]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(evaluate_cli, "_verify", verify_once)
+        code, text = _run(*_args(shared_data))
+        assert code == 0
+        code, out = _run(*_args(shared_data), "--json")
+        assert code == 0
+    return text, json.loads(out)
+
+
+@pytest.fixture(scope="module")
+def verified_json(verified_runs: tuple[str, dict[str, Any]]) -> dict[str, Any]:
+    return verified_runs[1]
+
+
+@pytest.fixture(scope="module")
+def verified_text(verified_runs: tuple[str, dict[str, Any]]) -> str:
+    return verified_runs[0]
+
+
+def test_verified_figures_on_the_rtabmap_samples(verified_json) -> None:
+    doc = verified_json
+    verified = doc["verified"]
+    assert verified is not None
+    # th defaults to the verified one, as annotate's; raw and verified are scored at it.
+    assert doc["parameters"]["threshold"] == VERIFIED_THRESHOLD
+    assert doc["threshold"] == verified["threshold"] == VERIFIED_THRESHOLD
+    assert verified["r_p100"] >= 0.60
+    assert verified["fp"] == 0 and verified["tp"] > 0  # at the recorded th
+    assert verified["r_p100"] > doc["r_p100"]
+    # Every raw figure has its verified counterpart.
+    raw = {k for k in doc if k in verified}
+    assert raw == set(verified)
+    cost = doc["verification_cost"]
+    assert doc["verification"] == "on"
+    assert doc["verification_hash"] == VerificationParameters().hash
+    assert cost["candidate_pairs"] == doc["tp"] + doc["fp"]
+    assert cost["accepted_pairs"] == verified["tp"] + verified["fp"]
+    assert cost["frame_pairs_checked"] >= cost["candidate_pairs"] > 0
+
+
+def test_verified_report_puts_raw_and_verified_side_by_side(verified_text, verified_json) -> None:
+    lines = verified_text.splitlines()
+    cost = verified_json["verification_cost"]
+    assert re.search(
+        rf"; verification {VerificationParameters().hash}: {cost['candidate_pairs']} candidate "
+        rf"pairs verified, {cost['accepted_pairs']} accepted \({cost['frame_pairs_checked']} "
+        r"frame pairs checked, \d+\.\d ms each, \d+\.\d s; fundamental matrix, no intrinsics\)$",
+        lines[0],
+    )
+    assert lines[4].startswith("threshold th     : 0.99 (default with verification;")
+    assert lines[5].split() == ["raw", "(all", "candidates)", "verified", "(accepted", "pairs)"]
+    v = verified_json["verified"]
+    reported = lines[6]
+    assert reported.startswith("reported pairs   : ")
+    assert reported.endswith(f"{v['tp'] + v['fp']} (TP {v['tp']}, FP {v['fp']})")
+
+
+def test_no_verify_prints_the_papers_report(shared_data: Path) -> None:
+    code, out = _run(*_args(shared_data), "--no-verify")
+    assert code == 0
+    images = shared_data / "rtabmap_samples_loop" / "images"
+    assert re.sub(r"\b\d+ frames/s", "<n> frames/s", out) == PAPER_REPORT.format(images=images)
+
+
+def test_no_verify_json_has_no_verified_figures(shared_data: Path) -> None:
+    code, out = _run(*_args(shared_data), "--no-verify", "--json")
+    doc = json.loads(out)
+    assert code == 0 and doc["verified"] is None and doc["verification"] == "off"
+    assert (doc["tp"], doc["fp"], doc["threshold"]) == (9, 0, 0.75)
+    assert doc["r_p100"] == pytest.approx(9 / 44)
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--vset", "min_inlier=3"], "unknown verification parameter"),
+        (["--intrinsics", "1,2"], "--intrinsics expects four numbers"),
+    ],
+)
+def test_bad_verification_options_fail_before_the_run(shared_data, capsys, extra, message) -> None:
+    code = main([str(a) for a in [*_args(shared_data), *extra]])
+    assert code == ExitCode.USAGE and message in capsys.readouterr().err
+
+
+def test_verification_options_are_refused_with_an_annotated_log(capsys) -> None:
+    log = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
+    code = main(["evaluate", str(log), "--gt", "x.npz", "--no-verify"])
+    err = capsys.readouterr().err
+    assert code == ExitCode.USAGE and "--no-verify" in err and "--images only" in err
