@@ -1,7 +1,7 @@
-"""The README's shown outputs are real: its `evaluate OUT.mcap`, `diff` and `export` blocks are
-parsed, their commands run on a fresh annotation of the sample, and the printed lines compared
-with the README's, with only machine-dependent fields (timings) masked. The `batch` block is
-left out (too slow)."""
+"""The README's shown outputs are real: its `evaluate --images`, `evaluate OUT.mcap`, `diff` and
+`export` blocks are parsed, their commands run (on the shared RTAB-Map samples, on a fresh
+annotation of the sample), and the printed lines compared with the README's, with only
+machine-dependent fields (timings) masked. The `batch` block is left out (too slow)."""
 
 from __future__ import annotations
 
@@ -173,7 +173,8 @@ def _split(words: list[str], separator: str) -> Iterator[list[str]]:
 def shell(tmp_path_factory: pytest.TempPathFactory) -> Shell:
     """A folder laid out like the repository root for the README's relative paths, holding a
     fresh annotation of the sample."""
-    folder = tmp_path_factory.mktemp("readme")
+    folder = tmp_path_factory.mktemp("readme") / "repo"  # its parent can hold ../shared
+    folder.mkdir()
     (folder / "sample_logs").symlink_to(REPO / "sample_logs", target_is_directory=True)
     shell = Shell(folder)
     shell.run(f"doseqslam-logs {ANNOTATE}")
@@ -197,6 +198,14 @@ def check_section(shell: Shell, heading: str, expected_blocks: int) -> None:
             if not expected and command.line.startswith("doseqslam-logs annotate"):
                 continue  # a set-up step shown without its summary line
             assert actual == expected, f"$ {command.line}"
+
+
+def test_evaluate_images_block(shell: Shell, shared_data: Path) -> None:
+    shared = shell.cwd.parent / "shared"  # the README's ../shared/data
+    shared.mkdir(exist_ok=True)
+    if not (shared / "data").exists():
+        (shared / "data").symlink_to(shared_data, target_is_directory=True)
+    check_section(shell, "`evaluate --images", 1)
 
 
 def test_evaluate_annotated_log_blocks(shell: Shell) -> None:
