@@ -250,23 +250,28 @@ def _ratio_matches(
     """Indices of ratio-test matches, at most one per match-frame feature (the closest).
 
     Many-to-one matches (repeated texture, e.g. a corridor's doors) would each count as an
-    inlier of the same point; keeping one per feature stops them inflating the count.
+    inlier of the same point; keeping one per feature stops them inflating the count. The two
+    nearest neighbours come from `cv2.batchDistance` as arrays (brute force, like BFMatcher's
+    knnMatch, whose matches it reproduces: tested), so no Python object is made per feature
+    and the GIL stays free for the other verification thread.
     """
     a: npt.NDArray[Any] = query.descriptors
     b: npt.NDArray[Any] = match.descriptors
-    norm = cv2.NORM_HAMMING
+    norm, dtype = cv2.NORM_HAMMING, cv2.CV_32S
     if query.detector == "sift":  # float L2 is faster than OpenCV's uint8 L2 path
-        norm, a, b = cv2.NORM_L2, a.astype(np.float32), b.astype(np.float32)
-    pairs = cv2.BFMatcher(norm).knnMatch(a, b, k=2)
-    best: dict[int, tuple[float, int]] = {}  # match feature -> (distance, query feature)
-    for pair in pairs:
-        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
-            kept = best.get(pair[0].trainIdx)
-            if kept is None or pair[0].distance < kept[0]:
-                best[pair[0].trainIdx] = (pair[0].distance, pair[0].queryIdx)
-    m_index = np.array(sorted(best), dtype=np.int64)
-    q_index = np.array([best[int(m)][1] for m in m_index], dtype=np.int64)
-    return q_index, m_index
+        norm, dtype, a, b = cv2.NORM_L2, cv2.CV_32F, a.astype(np.float32), b.astype(np.float32)
+    if len(a) == 0 or len(b) < 2:  # no second neighbour: no match passes the ratio test
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    distance, nearest = cv2.batchDistance(a, b, dtype, normType=norm, K=2)
+    passed = distance[:, 0] < ratio * distance[:, 1]
+    q_index = np.flatnonzero(passed)
+    m_index = nearest[q_index, 0].astype(np.int64)
+    # One query per match feature: the closest; ties go to the first query (knnMatch order).
+    order = np.lexsort((q_index, distance[q_index, 0], m_index))
+    m_sorted, q_sorted = m_index[order], q_index[order]
+    first = np.ones(m_sorted.size, bool)
+    first[1:] = m_sorted[1:] != m_sorted[:-1]
+    return q_sorted[first].astype(np.int64), m_sorted[first]
 
 
 # -- robust fits --------------------------------------------------------------------------
