@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import time
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +39,7 @@ from .sources.base import MCAP_MAGIC
 from .sources.camera_info import read_camera_info
 from .sources.salvage import SalvageReport, salvage_mcap
 from .verification import Intrinsics, VerificationParameters, VerificationStats, Verifier
-from .verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision
+from .verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
 
 HASH_BLOCK = 1 << 20
 
@@ -56,15 +58,16 @@ class AnnotateOptions:
     # output (see sources.salvage) and annotate that: a truncated or corrupt file then gives
     # what it still holds instead of an error. Other inputs: no effect.
     recover: bool = False
-    # Threads that prepare frames (frame vectors, features) ahead of the detector; the output
-    # does not depend on it.
+    # Threads that prepare frames (frame vectors, features) ahead of the detector, and that
+    # verify the candidates after it; the output does not depend on it.
     workers: int = 2
     # Geometric verification of the candidate pairs (None: off, the paper's behaviour). The
     # `annotate` command turns it on and raises th to VERIFIED_THRESHOLD (cli.params_args).
     verification: VerificationParameters | None = None
     # Intrinsics for the essential matrix; None: the log's CameraInfo when it has one.
     intrinsics: Intrinsics | None = None
-    # Memory for cached per-frame verification features (evicted frames are re-read).
+    # Memory for cached per-frame verification features (evicted frames are re-read), shared
+    # by the verification threads.
     verification_cache_bytes: int = DEFAULT_CACHE_BYTES
 
 
@@ -96,7 +99,8 @@ class Verification:
     intrinsics: Intrinsics | None
     intrinsics_source: str  # "--intrinsics", the CameraInfo topic, or "" (none)
     decisions: dict[int, VerifiedDecision]  # by sequence id
-    stats: VerificationStats
+    stats: VerificationStats  # seconds summed over the verification threads
+    wall_s: float = 0.0  # wall time of the whole stage
 
     def metadata(self) -> dict[str, str]:
         """Metadata entries: parameters and outcome, nothing that varies between runs."""
@@ -127,12 +131,17 @@ def verify_decisions(
         info = read_camera_info(read_path, topic)
         intrinsics = None if info is None else Intrinsics(info.fx, info.fy, info.cx, info.cy)
         origin = "" if info is None else info.topic
-    with LogFrameReader(read_path, topic, frame_times) as reader:
-        verifier = Verifier(
-            options.verification, reader, intrinsics, options.verification_cache_bytes
-        )
-        verified = {d.sequence_id: verifier.verify(d) for d in result.decisions}
-    return Verification(options.verification, intrinsics, origin, verified, verifier.stats)
+    params, workers = options.verification, max(1, options.workers)
+
+    @contextmanager
+    def open_verifier() -> Iterator[Verifier]:
+        with LogFrameReader(read_path, topic, frame_times) as reader:
+            yield Verifier(params, reader, intrinsics, options.verification_cache_bytes // workers)
+
+    start = time.perf_counter()
+    checked, stats = verify_in_threads(result.decisions, open_verifier, workers)
+    verified = {item.decision.sequence_id: item for item in checked}
+    return Verification(params, intrinsics, origin, verified, stats, time.perf_counter() - start)
 
 
 def source_sha256(path: Path) -> str:

@@ -25,6 +25,11 @@ from .sources.mcap_source import DESERIALIZERS
 
 TOPICS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
 
+# A loop closure's `verification`: "accepted", "rejected" (the check refused it), "skipped"
+# (a high frame rate's query stride left it out) or "off" (no verification).
+ACCEPTED, REJECTED, SKIPPED = "accepted", "rejected", "skipped"
+NOT_REPORTED = frozenset({REJECTED, SKIPPED})
+
 
 @dataclass
 class AnnotatedLog:
@@ -39,12 +44,14 @@ class AnnotatedLog:
 
     @property
     def reported_loop_closures(self) -> list[dict[str, Any]]:
-        """The loop closures the run reports: all but those geometric verification rejected.
+        """The loop closures the run reports: all but those geometric verification rejected
+        or skipped.
 
-        Rejected pairs stay on the channel (verification == "rejected") for evaluation and
-        diffs; logs annotated without verification (or before it existed) report every pair.
+        Rejected and skipped pairs stay on the channel (verification == "rejected" or
+        "skipped") for evaluation and diffs; logs annotated without verification (or before it
+        existed) report every pair.
         """
-        return [lc for lc in self.loop_closures if lc.get("verification") != "rejected"]
+        return [lc for lc in self.loop_closures if lc.get("verification") not in NOT_REPORTED]
 
     @property
     def parameters(self) -> dict[str, Any]:

@@ -320,7 +320,7 @@ def test_plot_without_matplotlib_is_a_usage_error(annotated, capsys, monkeypatch
     monkeypatch.delitem(sys.modules, "doseqslam_logs.plots", raising=False)
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
     code, stdout, err = run_cli(capsys, "evaluate", out, "--gt", GT, "--plot", tmp_path / "p")
-    assert code == ExitCode.USAGE and "doseqslam-logs[plot]" in err and stdout == ""
+    assert code == ExitCode.USAGE and "doseqslam-logs[plot]" in err and stdout == "", err
     assert not (tmp_path / "p").exists()
 
 

@@ -200,7 +200,8 @@ def test_verdicts_are_deterministic(shared_data: Path, detector: str, method: st
 
 def test_features_are_compact_and_in_original_pixels(shared_data: Path) -> None:
     gray = _gray(shared_data, RTABMAP, 61)
-    features = extract_features(gray, P)
+    native = P.replace(image_max_side=max(gray.shape))  # not shrunk: scale 1
+    features = extract_features(gray, native)
     assert 0 < features.count <= P.max_features
     assert features.keypoints.dtype == np.float32 and features.keypoints.shape[1] == 2
     assert features.descriptors.dtype == np.uint8 and features.descriptors.shape[1] == 32
@@ -221,7 +222,8 @@ def test_shrunk_frames_report_original_coordinates(shared_data: Path) -> None:
     assert features.keypoints[:, 0].max() > gray.shape[1]  # beyond the small frame: rescaled
     assert np.all(features.keypoints[:, 0] <= big.shape[1])
     # The same place in two resolutions still verifies.
-    assert verify_pair(features, _features(shared_data, RTABMAP, 21), P).accepted
+    other = _features(shared_data, RTABMAP, 21, small_params)
+    assert verify_pair(features, other, small_params).accepted
 
 
 @pytest.mark.parametrize(

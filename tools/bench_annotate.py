@@ -6,8 +6,10 @@ process) is its own:
 
 * decode: the camera channel read and decoded, nothing else (sources + log_frames.decoded_frames,
   the same path annotate uses);
-* full: `annotate_log` with default AnnotateOptions: the whole input copied into the output;
-* sidecar (--sidecar): the same with AnnotateOptions(sidecar=True);
+* full: `annotate_log` with the `annotate` command's defaults: geometric verification on (th
+  raised to VERIFIED_THRESHOLD) and the whole input copied into the output;
+* unverified: the same with verification off (`--no-verify`, the paper's decision, th 0.75);
+* sidecar (--sidecar): `full` with AnnotateOptions(sidecar=True);
 * cli (--cli): the `doseqslam-logs annotate LOG -o OUT` command with its own defaults.
 
 Outputs go to a temporary directory (--tmp-dir, default: beside the hour log, so on the same
@@ -40,8 +42,17 @@ HOUR_COMMAND = (
     "python tools/make_sample_logs.py --out /tmp/hour --name hour --duration 3600 --rate 10 "
     "--width 640 --height 480 --formats ros2mcap --jobs 2"
 )
-STAGES = ("wait", "features", "preprocess", "segmentation", "sad", "enhance", "trajectory")
-KINDS = ("decode", "full", "sidecar")
+STAGES = (
+    "wait",
+    "features",
+    "preprocess",
+    "segmentation",
+    "sad",
+    "enhance",
+    "trajectory",
+    "verify",
+)
+KINDS = ("decode", "full", "unverified", "sidecar")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -91,14 +102,23 @@ def measure_decode(log: Path, minutes: float | None) -> dict[str, Any]:
     return {"frames": counts.used, "wall_s": wall, "log_s": span, "stages": {}, "output_mb": 0.0}
 
 
-def measure_annotate(log: Path, minutes: float | None, sidecar: bool, out: Path) -> dict[str, Any]:
+def measure_annotate(
+    log: Path, minutes: float | None, sidecar: bool, verify: bool, out: Path
+) -> dict[str, Any]:
     from doseqslam_logs.annotate import AnnotateOptions, annotate_log
     from doseqslam_logs.detector import Parameters
 
     topic, end_ns = _end_ns(log, minutes)
-    options = AnnotateOptions(topic=topic, end_ns=end_ns, sidecar=sidecar)
+    extra: dict[str, Any] = {}
+    params = Parameters()
+    if verify:  # what the annotate command does by default
+        from doseqslam_logs.verification import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD
+
+        extra["verification"] = DEFAULT_VERIFICATION
+        params = Parameters(threshold=VERIFIED_THRESHOLD)
+    options = AnnotateOptions(topic=topic, end_ns=end_ns, sidecar=sidecar, **extra)
     start = time.perf_counter()
-    result = annotate_log(log, out, Parameters(), options)
+    result = annotate_log(log, out, params, options)
     wall = time.perf_counter() - start
     times = result.replay
     span = 0.0
@@ -109,7 +129,12 @@ def measure_annotate(log: Path, minutes: float | None, sidecar: bool, out: Path)
         span = _frame_span_s(first, last, frames)
     stages = dict(getattr(times, "stage_seconds", {}))  # older versions lack it
     stages["detector"] = times.wall_time_s
-    stages["write"] = wall - times.wall_time_s  # the rest: hashing the input, writing
+    verification = getattr(result, "verification", None)
+    verify_s = getattr(verification, "wall_s", 0.0) if verification is not None else 0.0
+    if verification is not None:
+        stages["verify"] = verify_s
+    # The rest: hashing the input, writing the output.
+    stages["write"] = wall - times.wall_time_s - verify_s
     return {
         "frames": frames,
         "wall_s": wall,
@@ -127,7 +152,8 @@ def child(args: argparse.Namespace) -> None:
     if args.child == "decode":
         figures = measure_decode(log, args.cut)
     else:
-        figures = measure_annotate(log, args.cut, args.child == "sidecar", out)
+        verify = args.child in ("full", "sidecar")
+        figures = measure_annotate(log, args.cut, args.child == "sidecar", verify, out)
     figures.update(_usage())
     print(json.dumps(figures))
 
@@ -253,8 +279,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--kinds",
-        default="decode,full",
-        help="measurements per log: decode, full, sidecar (none: only --cli)",
+        default="decode,full,unverified",
+        help="measurements per log: decode, full, unverified, sidecar (none: only --cli)",
     )
     parser.add_argument(
         "--compare",

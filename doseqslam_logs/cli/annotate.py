@@ -129,9 +129,10 @@ def summary_line(result: AnnotateResult) -> str:
         pose = f"essential matrix, intrinsics from {verification.intrinsics_source}"
         notes.insert(
             0,
-            f"verified {stats.candidates} candidate pairs: {stats.accepted} accepted "
+            f"verified {stats.candidates} candidate pairs: {stats.accepted} accepted"
+            f"{f', {stats.skipped} skipped (query stride)' if stats.skipped else ''} "
             f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
-            f"{stats.total_s:.1f} s; "
+            f"{verification.wall_s:.1f} s; "
             f"{pose if verification.intrinsics else 'fundamental matrix, no intrinsics'})",
         )
     return (

@@ -13,10 +13,9 @@ import numpy as np
 
 from .. import __version__
 from ..annotate import source_sha256
-from ..annotated import AnnotatedLog, read_annotations
+from ..annotated import NOT_REPORTED, AnnotatedLog, read_annotations
 from ..errors import UsageError
 from ..evaluation.annotated_log import (
-    REJECTED,
     LogEvaluation,
     evaluate_annotated_log,
     format_log_report,
@@ -283,7 +282,8 @@ def _detections(plots: ModuleType, log: AnnotatedLog, gt: GroundTruth, tolerance
     truth = gt.are_true([q for q, _ in pairs], [m for _, m in pairs], tolerance)
     detections = []
     for lc, (query, match), true in zip(log.loop_closures, pairs, truth, strict=True):
-        status = "rejected" if lc.get("verification") == REJECTED else ("tp" if true else "fp")
+        unreported = lc.get("verification") in NOT_REPORTED  # drawn faint, as not reported
+        status = "rejected" if unreported else ("tp" if true else "fp")
         detections.append(plots.Detection(query, match, status))
     return detections
 

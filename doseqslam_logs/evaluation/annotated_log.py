@@ -18,15 +18,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from ..annotated import AnnotatedLog
+from ..annotated import ACCEPTED, REJECTED, SKIPPED, AnnotatedLog
 from ..detector.events import Candidate, SequenceDecision
 from ..errors import GroundTruthError, UsageError
 from ..sinks.messages import NANOS_PER_SECOND, FrameTimes
 from .groundtruth import GroundTruth
 from .metrics import Evaluation, evaluate, format_side_by_side
-
-ACCEPTED = "accepted"
-REJECTED = "rejected"
 
 
 @dataclass(frozen=True)
@@ -74,7 +71,7 @@ def recorded_threshold(log: AnnotatedLog) -> float:
 def has_verification(log: AnnotatedLog) -> bool:
     """True when the run verified its pairs geometrically (even if none was a candidate)."""
     return any(s.get("verification") == "on" for s in log.sequences) or any(
-        lc.get("verification") in (ACCEPTED, REJECTED) for lc in log.loop_closures
+        lc.get("verification") in (ACCEPTED, REJECTED, SKIPPED) for lc in log.loop_closures
     )
 
 

@@ -13,11 +13,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ..annotated import AnnotatedLog
+from ..annotated import REJECTED, SKIPPED, AnnotatedLog
 from ..errors import SourceError
 from ..sinks.messages import NANOS_PER_SECOND
 
-REJECTED = "rejected"
 ROTATION_COLUMNS = ("rotation_qx", "rotation_qy", "rotation_qz", "rotation_qw")
 DIRECTION_COLUMNS = ("translation_dx", "translation_dy", "translation_dz")
 
@@ -34,7 +33,7 @@ COLUMNS = (
     "sequence_id",
     "method",
     "parameters_hash",
-    "verification",  # "accepted" | "rejected" | "off"; None: not recorded
+    "verification",  # "accepted" | "rejected" | "skipped" | "off"; None: not recorded
     "inliers",
     "refined_match_index",
     "refined_match_time_ns",
@@ -92,6 +91,10 @@ def rejected_count(log: AnnotatedLog) -> int:
     return sum(1 for lc in log.loop_closures if lc.get("verification") == REJECTED)
 
 
+def skipped_count(log: AnnotatedLog) -> int:
+    return sum(1 for lc in log.loop_closures if lc.get("verification") == SKIPPED)
+
+
 def _finite(value: Any) -> float | None:
     number = float(value)
     return number if math.isfinite(number) else None
@@ -144,7 +147,9 @@ def loop_closure_row(log: AnnotatedLog, lc: Mapping[str, Any]) -> dict[str, Any]
 
 
 def loops_summary(log: AnnotatedLog, written: int, include_rejected: bool) -> str:
-    rejected = rejected_count(log)
-    if include_rejected or not rejected:
+    rejected, skipped = rejected_count(log), skipped_count(log)
+    if include_rejected or not (rejected or skipped):
         return f"{written} loop closures"
-    return f"{written} loop closures ({rejected} rejected by verification left out)"
+    left_out = [f"{rejected} rejected by verification"] if rejected else []
+    left_out += [f"{skipped} not checked (query stride)"] if skipped else []
+    return f"{written} loop closures ({', '.join(left_out)} left out)"

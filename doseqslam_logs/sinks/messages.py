@@ -189,10 +189,15 @@ def _verification_fields(
             **_pose_fields(None, None, None),
         }
     verdict = check.verdict
+    if check.skipped:  # not checked: no counts to record
+        status, inliers, tentative = "skipped", -1, -1
+    else:
+        status = "accepted" if verdict.accepted else "rejected"
+        inliers, tentative = verdict.inliers, verdict.matches_tested
     return {
-        "verification": "accepted" if verdict.accepted else "rejected",
-        "inliers": verdict.inliers,
-        "tentative_matches": verdict.matches_tested,
+        "verification": status,
+        "inliers": inliers,
+        "tentative_matches": tentative,
         "verification_model": _MODEL_NAMES[verdict.model],
         "rejection_reason": "" if verdict.accepted else verdict.reason,
         **frame,

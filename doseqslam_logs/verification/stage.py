@@ -10,14 +10,29 @@ queries, a match window) are loaded in one read.
 Each candidate (q, m) is checked against every frame of m +- r inside the sequence's database;
 the frame with the most inliers is the refined match, and the pair is accepted when its inliers
 reach `min_inliers` (`refine_match`). Rejected pairs are kept with their verdict.
+
+High frame rates (`query_stride` > 1: more than one frame per `query_interval_s`): neighbouring
+frames are near copies, and checking each of them against 2r + 1 frames would cost more than
+the detector (a 10 Hz hour has ~34,000 candidates). There the stage checks every s-th
+candidate of a sequence (the others are recorded as skipped, not reported), searches the window
+coarse to fine (the match and every frame whose index is a multiple of s, then the s - 1
+frames on each side of the best, unless the best is hopeless: under half of min_inliers).
+The next checked candidate of the sequence first looks at the frame at the previous one's
+offset from its match and the grid frames beside it: accepted there, it is done; hopeless
+there after a hopeless previous one, it is rejected (a wrong proposal costs 2 or 3 pairs a
+candidate, not a whole grid); otherwise its whole window is searched. At s = 1 every
+candidate gets the exhaustive window, exactly as before.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field, fields
 
 from ..detector.events import Candidate, SequenceDecision
 from .geometry import (
@@ -36,6 +51,9 @@ FrameLoader = Callable[[Sequence[int]], Iterator[tuple[int, GrayImage]]]
 
 DEFAULT_CACHE_BYTES = 256 * 2**20
 
+# The reason of a candidate that the query stride left out (verification = "skipped").
+SKIPPED_REASON = "not checked"
+
 
 @dataclass(frozen=True)
 class PairCheck:
@@ -48,6 +66,11 @@ class PairCheck:
     @property
     def accepted(self) -> bool:
         return self.verdict.accepted
+
+    @property
+    def skipped(self) -> bool:
+        """Left out by the query stride: neither accepted nor checked."""
+        return self.verdict.reason == SKIPPED_REASON
 
 
 @dataclass(frozen=True)
@@ -73,6 +96,7 @@ class VerificationStats:
     decisions: int = 0
     candidates: int = 0
     accepted: int = 0
+    skipped: int = 0  # candidates the query stride left out (counted in `candidates`)
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
     frames_loaded: int = 0  # frames decoded for features (re-reads of evicted frames included)
     load_s: float = 0.0
@@ -87,6 +111,25 @@ class VerificationStats:
     @property
     def ms_per_pair(self) -> float:
         return 1e3 * self.pairs_s / self.pairs if self.pairs else 0.0
+
+    def add(self, other: VerificationStats) -> None:
+        """Sums another thread's figures into these: seconds add up over the threads, and
+        so do the threads' cache peaks (an upper bound of their joint peak)."""
+        for item in fields(self):
+            setattr(self, item.name, getattr(self, item.name) + getattr(other, item.name))
+
+
+def query_stride(decision: SequenceDecision, interval_s: float) -> int:
+    """Candidates per checked one: the frames of the sequence within `interval_s` (>= 1).
+
+    From the sequence's mean frame interval, in integer nanoseconds so that a steady rate
+    gives the same stride on every machine (10 Hz and 0.5 s: 5; 2 Hz or slower: 1).
+    """
+    if decision.length < 2 or interval_s <= 0:
+        return 1
+    span_ns = decision.last_timestamp_ns - decision.first_timestamp_ns
+    frame_ns = max(1, span_ns // (decision.length - 1))
+    return max(1, round(interval_s * 1e9) // frame_ns)
 
 
 class FeatureCache:
@@ -136,27 +179,82 @@ class Verifier:
     def verify(self, decision: SequenceDecision) -> VerifiedDecision:
         """The decision with one PairCheck per candidate when it is accepted, else none.
 
-        Every frame of the window is checked, not only the detector's match: on the RTAB-Map
-        samples, keeping the detector's match whenever it passed (and searching only for the
-        rejected ones) checked 4x fewer pairs but let a wrong match through (1 FP, R@P100
-        45.5 % instead of 86.4 %; docs/results.md).
+        At stride 1 every frame of the window is checked, not only the detector's match: on
+        the RTAB-Map samples, keeping the detector's match whenever it passed (and searching
+        only for the rejected ones) checked 4x fewer pairs but let a wrong match through (1 FP,
+        R@P100 45.5 % instead of 86.4 %; docs/results.md).
         """
         self.stats.decisions += 1
         if not decision.accepted:
             return VerifiedDecision(decision, ())
-        windows = [self._window(c, decision.database_size) for c in decision.candidates]
-        needed = {c.query_index for c in decision.candidates}
-        for window in windows:
-            needed.update(window)
+        stride = query_stride(decision, self.params.query_interval_s)
+        checked = [c for z, c in enumerate(decision.candidates) if z % stride == 0]
+        needed = {c.query_index for c in checked}
+        if stride == 1:  # every window frame will be needed: read them all in one go
+            for candidate in checked:
+                needed.update(self._window(candidate, decision.database_size))
         features = self._features(sorted(needed))
-        checks = []
-        for candidate, window in zip(decision.candidates, windows, strict=True):
-            verdicts = self._verdicts(features[candidate.query_index], window, features)
-            refined, verdict = best_verdict(verdicts, candidate.match_index)
-            checks.append(PairCheck(candidate, refined, verdict))
+        checks: list[PairCheck] = []
+        previous: PairCheck | None = None  # the last check of this sequence (stride > 1)
+        for z, candidate in enumerate(decision.candidates):
+            if z % stride:
+                checks.append(PairCheck(candidate, candidate.match_index, self._skipped()))
+                continue
+            previous = self._check(candidate, decision.database_size, stride, previous, features)
+            checks.append(previous)
         self.stats.candidates += len(checks)
         self.stats.accepted += sum(check.accepted for check in checks)
+        self.stats.skipped += sum(check.skipped for check in checks)
         return VerifiedDecision(decision, tuple(checks))
+
+    def _skipped(self) -> Verdict:
+        return Verdict(False, 0, 0, "F" if self.intrinsics is None else "E", SKIPPED_REASON)
+
+    def _check(
+        self,
+        candidate: Candidate,
+        database_size: int,
+        stride: int,
+        previous: PairCheck | None,
+        features: dict[int, FrameFeatures],
+    ) -> PairCheck:
+        """One candidate: its window searched exhaustively (stride 1), or tracked from the
+        previous check of its sequence and, failing that, coarse to fine (module docstring)."""
+        window = self._window(candidate, database_size)
+        query, match = features[candidate.query_index], candidate.match_index
+        seen: dict[int, Verdict] = {}  # window frame -> verdict, each pair checked once
+
+        def best(frames: Iterable[int]) -> tuple[int, Verdict]:
+            self._check_frames(query, [m for m in frames if m in window], seen)
+            return best_verdict(list(seen.items()), match)
+
+        if stride == 1:
+            return PairCheck(candidate, *best(window))
+        if previous is not None:
+            offset = previous.refined_match_index - previous.candidate.match_index
+            centre = match + offset  # and the grid frames on either side (likely cached)
+            tracked = [m for m in range(centre - stride + 1, centre + stride) if m % stride == 0]
+            refined, verdict = best([centre, *tracked])
+            if verdict.accepted or (self._hopeless(verdict) and self._hopeless(previous.verdict)):
+                return PairCheck(candidate, refined, verdict)
+        # The grid is fixed in frame indices (not relative to the match), so the next checked
+        # candidates, whose windows overlap this one, find most of its frames in the cache.
+        coarse, verdict = best(m for m in window if m % stride == 0 or m == match)
+        if self._hopeless(verdict):  # its near copies on either side will not pass either
+            return PairCheck(candidate, coarse, verdict)
+        return PairCheck(candidate, *best(range(coarse - stride + 1, coarse + stride)))
+
+    def _hopeless(self, verdict: Verdict) -> bool:
+        """Under half of min_inliers: no near copy of this frame is likely to pass."""
+        return 2 * verdict.inliers < self.params.min_inliers
+
+    def _check_frames(
+        self, query: FrameFeatures, frames: Sequence[int], seen: dict[int, Verdict]
+    ) -> None:
+        """Verdicts of `query` against the frames not yet in `seen`, added to it."""
+        new = [m for m in frames if m not in seen]
+        if new:
+            seen.update(self._verdicts(query, new, self._features(new)))
 
     def _window(self, candidate: Candidate, database_size: int) -> range:
         """Frames within +-refine_radius of the match that belong to the sequence's database."""
@@ -204,3 +302,47 @@ class Verifier:
         if absent:
             raise LookupError(f"the frame loader did not return frames {absent[:5]}")
         return loaded
+
+
+def verify_in_threads(
+    decisions: Sequence[SequenceDecision],
+    open_verifier: Callable[[], AbstractContextManager[Verifier]],
+    workers: int,
+) -> tuple[list[VerifiedDecision], VerificationStats]:
+    """`Verifier.verify` of each decision, on `workers` threads; results in decision order.
+
+    Each thread opens its own verifier (its own frame reader and feature cache) and takes the
+    next decision as it finishes one. OpenCV's matching and robust fits release the GIL, so
+    the threads run on separate cores. A decision's checks depend on that decision alone, so
+    the results are the same for any number of workers. Stats are summed over the threads.
+    """
+    results: list[VerifiedDecision | None] = [None] * len(decisions)
+    stats = VerificationStats()
+    lock, failed = threading.Lock(), threading.Event()
+    order = iter(range(len(decisions)))
+
+    def work() -> None:
+        with open_verifier() as verifier:
+            try:
+                while not failed.is_set():
+                    with lock:
+                        index = next(order, None)
+                    if index is None:
+                        break
+                    results[index] = verifier.verify(decisions[index])
+            except BaseException:
+                failed.set()  # the other threads stop at their next decision
+                raise
+            finally:
+                with lock:
+                    stats.add(verifier.stats)
+
+    if workers <= 1:
+        work()
+    else:
+        with ThreadPoolExecutor(workers, thread_name_prefix="verify") as pool:
+            for future in [pool.submit(work) for _ in range(workers)]:
+                future.result()
+    done = [result for result in results if result is not None]
+    assert len(done) == len(decisions)
+    return done, stats

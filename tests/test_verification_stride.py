@@ -1,0 +1,199 @@
+"""High frame rates: the query stride, coarse-to-fine windows, offset tracking, threads.
+
+The committed samples run at 2 Hz, where every candidate is checked exhaustively; with
+query_interval_s = 2 s the same real frames run the stride path (s = 4).
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from doseqslam_logs.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.annotated import read_annotations
+from doseqslam_logs.detector import Parameters
+from doseqslam_logs.detector.events import Candidate, SequenceDecision
+from doseqslam_logs.evaluation.groundtruth import load_ground_truth
+from doseqslam_logs.export.loops import loops_summary
+from doseqslam_logs.frame_reader import FolderFrameReader
+from doseqslam_logs.sources.folder import list_images
+from doseqslam_logs.verification import (
+    DEFAULT_VERIFICATION,
+    VERIFIED_THRESHOLD,
+    FrameFeatures,
+    Verifier,
+)
+from doseqslam_logs.verification.geometry import _ratio_matches
+from doseqslam_logs.verification.stage import query_stride, verify_in_threads
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
+LOOPS = SAMPLES / "drive_loops.ros2.mcap"
+STRIDED = DEFAULT_VERIFICATION.replace(query_interval_s=2.0)  # 2 Hz sample: s = 4
+
+
+def decision(
+    length: int, frame_ns: int, candidates: int = 0, first: int = 100, sequence_id: int = 0
+) -> SequenceDecision:
+    """A sequence of `length` frames from `first`, its candidates matched to frames 10, 11..."""
+    pairs = tuple(
+        Candidate(first + z, 10 + z, (first + z) * frame_ns, (10 + z) * frame_ns, 1.0)
+        for z in range(candidates)
+    )
+    return SequenceDecision(
+        sequence_id=sequence_id,
+        first_index=first,
+        last_index=first + length - 1,
+        first_timestamp_ns=first * frame_ns,
+        last_timestamp_ns=(first + length - 1) * frame_ns,
+        database_size=first - 10,
+        best_start=10,
+        best_velocity=1.0,
+        best_score=1.0,
+        second_score=2.0,
+        gamma=0.5,
+        gamma_previous=None,
+        gamma_next=None,
+        f=0.5,
+        threshold=0.99,
+        accepted=bool(pairs),
+        candidates=pairs,
+        method="doseqslam",
+    )
+
+
+def test_query_stride_follows_the_frame_rate() -> None:
+    assert query_stride(decision(30, 100_000_000), 0.5) == 5  # 10 Hz
+    assert query_stride(decision(30, 500_000_000), 0.5) == 1  # 2 Hz: every candidate
+    assert query_stride(decision(30, 1_000_000_000), 0.5) == 1  # 1 Hz
+    assert query_stride(decision(30, 33_333_333), 0.5) == 15  # 30 Hz
+    assert query_stride(decision(30, 100_000_000), 0.0) == 1  # 0: always every candidate
+    assert query_stride(decision(1, 100_000_000), 0.5) == 1  # one frame: no rate
+
+
+@pytest.fixture(scope="module")
+def strided_log(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("strided") / "loops.mcap"
+    params = Parameters(threshold=VERIFIED_THRESHOLD)
+    annotate_log(LOOPS, out, params, AnnotateOptions(verification=STRIDED, workers=2))
+    return out
+
+
+def test_one_candidate_in_s_is_checked_and_the_others_are_not_reported(strided_log) -> None:
+    log = read_annotations(strided_log)
+    by_sequence: dict[int, list[dict]] = {}
+    for lc in log.loop_closures:
+        by_sequence.setdefault(lc["sequence_id"], []).append(lc)
+    skipped = 0
+    for pairs in by_sequence.values():
+        pairs.sort(key=lambda lc: lc["query_index"])
+        for z, lc in enumerate(pairs):
+            if z % 4:
+                assert lc["verification"] == "skipped" and lc["inliers"] == -1
+                skipped += 1
+            else:
+                assert lc["verification"] in ("accepted", "rejected") and lc["inliers"] >= 0
+    assert skipped > 50
+    assert all(lc["verification"] == "accepted" for lc in log.reported_loop_closures)
+    assert len(log.reported_loop_closures) >= 15
+    summary = loops_summary(log, len(log.reported_loop_closures), include_rejected=False)
+    assert f"{skipped} not checked (query stride)" in summary
+
+
+def test_strided_acceptances_are_true_places(strided_log) -> None:
+    gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
+    reported = read_annotations(strided_log).reported_loop_closures
+    q = np.array([lc["query_index"] for lc in reported])
+    m = np.array([lc["refined_match_index"] for lc in reported])
+    assert gt.are_true(q, m, 1).mean() >= 0.9  # within a frame of a GT cell (2 m, 20 deg)
+
+
+def test_strided_search_checks_far_fewer_pairs_than_the_exhaustive_one(tmp_path) -> None:
+    """Exhaustive: up to 2r + 1 = 51 frames per checked candidate; coarse to fine with s = 4:
+    at most 13 grid frames and the match, then 6 fine, and 5 while an offset is tracked."""
+    params = Parameters(threshold=VERIFIED_THRESHOLD)
+    results = {}
+    for name, vparams in (("strided", STRIDED), ("exhaustive", DEFAULT_VERIFICATION)):
+        options = AnnotateOptions(verification=vparams, sidecar=True, workers=1)
+        results[name] = annotate_log(LOOPS, tmp_path / f"{name}.mcap", params, options)
+    strided = results["strided"].verification
+    exhaustive = results["exhaustive"].verification
+    assert strided is not None and exhaustive is not None
+    checked = strided.stats.candidates - strided.stats.skipped
+    assert strided.stats.skipped > 0 and exhaustive.stats.skipped == 0
+    assert strided.stats.pairs <= 20 * checked
+    assert exhaustive.stats.pairs > 40 * exhaustive.stats.candidates
+    assert strided.stats.pairs < exhaustive.stats.pairs / 8
+
+
+def test_threads_give_the_same_checks(shared_data) -> None:
+    """The decisions of RTAB-Map verified on 1 and 3 threads: the same checks, in order."""
+    images = list_images(shared_data / "rtabmap_samples_loop" / "images")
+    sequences = [decision(3, 1_000_000_000, 3, first=60 + 5 * k, sequence_id=k) for k in range(4)]
+
+    @contextmanager
+    def open_verifier():
+        yield Verifier(DEFAULT_VERIFICATION.replace(refine_radius=3), FolderFrameReader(images))
+
+    lone, lone_stats = verify_in_threads(sequences, open_verifier, 1)
+    threaded, threaded_stats = verify_in_threads(sequences, open_verifier, 3)
+    assert [v.decision.sequence_id for v in threaded] == [0, 1, 2, 3]
+    assert lone == threaded
+    assert lone_stats.pairs == threaded_stats.pairs == 4 * 3 * 7
+
+
+def test_a_failing_thread_stops_the_others() -> None:
+    def broken(indices):
+        raise LookupError("frames gone")
+        yield  # pragma: no cover
+
+    @contextmanager
+    def open_verifier():
+        yield Verifier(DEFAULT_VERIFICATION, broken)
+
+    with pytest.raises(LookupError, match="frames gone"):
+        verify_in_threads([decision(3, 10**9, 3)] * 6, open_verifier, 2)
+
+
+def knn_reference(query: FrameFeatures, match: FrameFeatures, ratio: float):
+    """The BFMatcher.knnMatch formulation the vectorized ratio test replaced."""
+    best: dict[int, tuple[float, int]] = {}
+    for pair in cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query.descriptors, match.descriptors, 2):
+        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
+            kept = best.get(pair[0].trainIdx)
+            if kept is None or pair[0].distance < kept[0]:
+                best[pair[0].trainIdx] = (pair[0].distance, pair[0].queryIdx)
+    m_index = np.array(sorted(best), dtype=np.int64)
+    return np.array([best[int(m)][1] for m in m_index], dtype=np.int64), m_index
+
+
+def orb_features(descriptors: np.ndarray) -> FrameFeatures:
+    points = np.zeros((len(descriptors), 2), np.float32)
+    return FrameFeatures(points, descriptors, "orb", 1.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(0, 40),
+    st.integers(0, 40),
+    st.integers(1, 6),  # palette size: few distinct descriptors make many distance ties
+    st.floats(0.3, 1.0),
+    st.integers(0, 2**32 - 1),
+)
+def test_ratio_matches_equal_knn_match(n_query, n_match, palette, ratio, seed) -> None:
+    rng = np.random.default_rng(seed)
+    colours = rng.integers(0, 256, (palette, 32), dtype=np.uint8)
+    query = colours[rng.integers(0, palette, n_query)] ^ rng.integers(0, 2, (n_query, 32)).astype(
+        np.uint8
+    )
+    match = colours[rng.integers(0, palette, n_match)]
+    a, b = orb_features(query), orb_features(match)
+    expected = knn_reference(a, b, ratio)
+    got = _ratio_matches(a, b, ratio)
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
