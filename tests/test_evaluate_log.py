@@ -318,7 +318,11 @@ def test_errors_are_one_line_with_their_exit_code(annotated, capsys, argv, code,
 def test_plot_without_matplotlib_is_a_usage_error(annotated, capsys, monkeypatch, tmp_path) -> None:
     out, _ = annotated
     monkeypatch.delitem(sys.modules, "doseqslam_logs.plots", raising=False)
-    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
+    # Every matplotlib module: cached submodules (an earlier test drew pictures) would
+    # otherwise still import.
+    hidden = [name for name in sys.modules if name.split(".")[0] == "matplotlib"]
+    for name in {"matplotlib", *hidden}:
+        monkeypatch.setitem(sys.modules, name, None)  # importing it raises ImportError
     code, stdout, err = run_cli(capsys, "evaluate", out, "--gt", GT, "--plot", tmp_path / "p")
     assert code == ExitCode.USAGE and "doseqslam-logs[plot]" in err and stdout == "", err
     assert not (tmp_path / "p").exists()

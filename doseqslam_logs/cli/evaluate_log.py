@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import json
 from pathlib import Path
 from types import ModuleType
@@ -131,12 +132,13 @@ def _check_log_args(args: argparse.Namespace) -> None:
 def _plots_module() -> ModuleType:
     """doseqslam_logs.plots, or a usage error when matplotlib is not installed."""
     try:
-        from .. import plots
+        # Through sys.modules, not the package attribute `from .. import plots` would return
+        # once the module was imported (a test that removes matplotlib relies on that).
+        return importlib.import_module("doseqslam_logs.plots")
     except ImportError as exc:
         raise UsageError(
             f"--plot needs matplotlib ({exc}): pip install 'doseqslam-logs[plot]'"
         ) from exc
-    return plots
 
 
 def _content_log(args: argparse.Namespace, log: AnnotatedLog) -> Path:
