@@ -17,8 +17,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,11 +24,10 @@ from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import Evaluation, evaluate
 from doseqslam_logs.evaluation.verified import verified_decisions
-from doseqslam_logs.frame_reader import FolderFrameReader
+from doseqslam_logs.frame_reader import verify_folder
 from doseqslam_logs.replay import replay
 from doseqslam_logs.sources.folder import folder_frames, list_images
-from doseqslam_logs.verification import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD, Verifier
-from doseqslam_logs.verification.stage import verify_in_threads
+from doseqslam_logs.verification import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD
 
 DATA = Path("../shared/data")
 
@@ -93,13 +90,7 @@ def rows(data: Path, dataset: Dataset, method: str) -> list[str]:
     folder = data / dataset.images
     start = time.perf_counter()
     decisions = replay(folder_frames(folder, 1.0), make_detector(params), workers=2).decisions
-    images = list_images(folder)
-
-    @contextmanager
-    def open_verifier() -> Iterator[Verifier]:
-        yield Verifier(DEFAULT_VERIFICATION, FolderFrameReader(images))
-
-    checked, stats = verify_in_threads(decisions, open_verifier, 2)
+    checked, stats = verify_folder(decisions, list_images(folder), DEFAULT_VERIFICATION)
     verified = verified_decisions(checked)
     seconds = time.perf_counter() - start
     print(

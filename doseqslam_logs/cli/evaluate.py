@@ -14,8 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,11 +25,10 @@ from ..errors import GroundTruthError, UsageError
 from ..evaluation.groundtruth import load_ground_truth
 from ..evaluation.metrics import Evaluation, evaluate, format_report, format_side_by_side
 from ..evaluation.verified import verified_decisions
-from ..frame_reader import FolderFrameReader
+from ..frame_reader import verify_folder
 from ..replay import ReplayResult, replay
 from ..sources.folder import folder_frames, list_images
-from ..verification import Intrinsics, VerificationParameters, VerificationStats, Verifier
-from ..verification.stage import verify_in_threads
+from ..verification import Intrinsics, VerificationParameters, VerificationStats
 from . import evaluate_log
 from .params_args import (
     add_parameter_options,
@@ -184,13 +181,8 @@ def _verify(
     if params is None:
         return None
     intrinsics = intrinsics_from_args(args)
-
-    @contextmanager
-    def open_verifier() -> Iterator[Verifier]:
-        yield Verifier(params, FolderFrameReader(images), intrinsics)
-
     start = time.perf_counter()
-    verified, stats = verify_in_threads(result.decisions, open_verifier, VERIFY_THREADS)
+    verified, stats = verify_folder(result.decisions, images, params, intrinsics, VERIFY_THREADS)
     wall_s = time.perf_counter() - start
     return _FolderVerification(params, intrinsics, verified_decisions(verified), stats, wall_s)
 
