@@ -84,20 +84,19 @@ class LogFrameReader:
         """
         for run in runs(indices):
             missing = [index for index in run if index not in self._messages]
-            if missing:
-                self._read(missing)
-            for index in run:
-                message = self._messages.get(index)
-                if message is None:  # evicted by its own read: the run outgrew the cache
-                    self._read([index])
-                    message = self._messages[index]
+            cached = run if not missing else [i for i in run if i < missing[0]]
+            for index in cached:
                 self._messages.move_to_end(index)
-                yield index, decode_gray(message)
+                yield index, decode_gray(self._messages[index])
+            if missing:
+                yield from self._read(run[len(cached) :], missing[0])
 
-    def _read(self, wanted: list[int]) -> None:
-        """Read the frames from wanted[0] - READ_AROUND to wanted[-1] + READ_AROUND."""
+    def _read(self, wanted: list[int], first_missing: int) -> Iterator[tuple[int, GrayImage]]:
+        """The wanted frames, from one read of first_missing - READ_AROUND to
+        wanted[-1] + READ_AROUND; every frame read is kept (the wanted ones are served from
+        the read itself, so even a cache too small for them is correct)."""
         self.reads += 1
-        first = max(0, wanted[0] - READ_AROUND)
+        first = max(0, first_missing - READ_AROUND)
         last = min(len(self.times) - 1, wanted[-1] + READ_AROUND)
         missing = set(wanted)
         start, end = self.times.log_time(first), self.times.log_time(last) + 1
@@ -106,7 +105,9 @@ class LogFrameReader:
             for index in self._by_key.get((message.log_time_ns, stamp), ()):
                 if first <= index <= last:
                     self._keep(index, message)
-                    missing.discard(index)
+                    if index in missing:  # the read is in index (log-time) order
+                        missing.discard(index)
+                        yield index, decode_gray(message)
         if missing:
             raise LookupError(
                 f"{self.path}: frames {sorted(missing)[:5]} of {self.topic} not found again"

@@ -21,7 +21,10 @@ from doseqslam_logs.detector import Parameters
 from doseqslam_logs.detector.events import Candidate, SequenceDecision
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.export.loops import loops_summary
-from doseqslam_logs.frame_reader import FolderFrameReader
+from doseqslam_logs.frame_reader import FolderFrameReader, LogFrameReader
+from doseqslam_logs.log_frames import FrameCounts, decoded_frames
+from doseqslam_logs.sinks.messages import FrameTimes
+from doseqslam_logs.sources import open_source, pick_image_topic
 from doseqslam_logs.sources.folder import list_images
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
@@ -34,6 +37,7 @@ from doseqslam_logs.verification.stage import query_stride, verify_in_threads
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOOPS = SAMPLES / "drive_loops.ros2.mcap"
+TOPIC = "/camera/image/compressed"
 STRIDED = DEFAULT_VERIFICATION.replace(query_interval_s=2.0)  # 2 Hz sample: s = 4
 
 
@@ -197,3 +201,44 @@ def test_ratio_matches_equal_knn_match(n_query, n_match, palette, ratio, seed) -
     got = _ratio_matches(a, b, ratio)
     np.testing.assert_array_equal(got[0], expected[0])
     np.testing.assert_array_equal(got[1], expected[1])
+
+
+def sample_frames() -> tuple[FrameTimes, list[np.ndarray]]:
+    """Every frame of the sample, decoded on one pass, with its times (as annotate records)."""
+    with open_source(LOOPS) as source:
+        topic = pick_image_topic(source, None)
+        frames = list(decoded_frames(source.image_messages(topic), FrameCounts()))
+    times = FrameTimes.from_pairs([(f.log_time_ns, f.header_stamp_ns) for f in frames])
+    return times, [f.image for f in frames]
+
+
+def test_the_frame_reader_reads_around_and_gives_the_same_frames() -> None:
+    times, images = sample_frames()
+    wanted = [200, 5, 6, 120, 7, 201, 30, 199, 8, 121]
+    with LogFrameReader(LOOPS, TOPIC, times) as reader:
+        for index in wanted:  # one frame at a time, as the stage asks at high frame rates
+            [(got, gray)] = list(reader([index]))
+            assert got == index and np.array_equal(gray, images[index])
+        assert reader.reads == 3  # around 200, 5 and 120 (+-32 frames): the others were kept
+    with LogFrameReader(LOOPS, TOPIC, times, cache_bytes=1) as tiny:  # keeps one message
+        assert [i for i, _ in tiny([5, 6, 7])] == [5, 6, 7]
+        list(tiny([6]))
+        assert tiny.reads == 2
+
+
+def test_ranged_reads_do_not_parse_the_summary_again(monkeypatch) -> None:
+    import mcap.reader
+
+    parsed = []
+    original = mcap.reader._read_summary_from_stream_reader
+    monkeypatch.setattr(
+        mcap.reader,
+        "_read_summary_from_stream_reader",
+        lambda stream: parsed.append(1) or original(stream),
+    )
+    with open_source(LOOPS) as source:
+        opened = len(parsed)  # the source reads it once, on opening
+        for start in range(0, 100, 10):
+            t0 = 1_700_000_000_000_000_000 + start * 500_000_000
+            assert len(list(source.image_messages(TOPIC, t0, t0 + 10**9))) == 2
+    assert opened == 1 and len(parsed) == 1
