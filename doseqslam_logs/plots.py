@@ -28,7 +28,7 @@ from .evaluation.groundtruth import GroundTruth
 from .evaluation.metrics import Evaluation
 from .sinks.atomic import atomic_output
 
-Status = Literal["tp", "fp", "reported", "rejected"]
+Status = Literal["tp", "fp", "reported", "rejected", "skipped"]
 
 # One colour per status, the same in every picture.
 COLOURS: dict[Status, str] = {
@@ -36,13 +36,17 @@ COLOURS: dict[Status, str] = {
     "fp": "#d73027",
     "reported": "#2166ac",
     "rejected": "#999999",
+    "skipped": "#cccccc",
 }
 LABELS: dict[Status, str] = {
     "tp": "loop closure, true",
     "fp": "loop closure, false",
     "reported": "loop closure",
     "rejected": "rejected by verification",
+    "skipped": "not checked (query stride)",
 }
+# Candidates that are not reported: drawn faint, under the reported ones.
+FAINT: frozenset[Status] = frozenset({"rejected", "skipped"})
 DPI = 110
 
 
@@ -74,8 +78,8 @@ def _by_status(detections: Sequence[Detection]) -> dict[Status, list[Detection]]
     groups: dict[Status, list[Detection]] = {}
     for detection in detections:
         groups.setdefault(detection.status, []).append(detection)
-    # Faint rejected pairs first, so that the reported ones are drawn over them.
-    order: list[Status] = ["rejected", "reported", "fp", "tp"]
+    # Faint pairs first, so that the reported ones are drawn over them.
+    order: list[Status] = ["skipped", "rejected", "reported", "fp", "tp"]
     return {status: groups[status] for status in order if status in groups}
 
 
@@ -149,15 +153,16 @@ def plot_pr_curve(path: Path, raw: Evaluation, verified: Evaluation | None, titl
 # -- difference matrix --------------------------------------------------------------------
 
 
-# Markers on the grey matrix: grey (the trajectory's "faint") would vanish there, so rejected
-# pairs are hollow light-blue rings.
+# Markers on the grey matrix: grey (the trajectory's "faint") would vanish there, so pairs that
+# are not reported are hollow blue rings (rejected) and smaller paler ones (skipped).
 _MATRIX_MARKERS: dict[Status, tuple[str, float]] = {
     "tp": (".", 5),
     "fp": ("x", 7),
     "reported": (".", 5),
     "rejected": ("o", 4),
+    "skipped": ("o", 3),
 }
-_MATRIX_REJECTED = "#4fa3e0"
+_MATRIX_FAINT: dict[Status, str] = {"rejected": "#4fa3e0", "skipped": "#a6cee3"}
 
 
 def _gt_cells(gt: GroundTruth, matrix: DifferenceMatrix) -> npt.NDArray[np.bool_]:
@@ -205,9 +210,9 @@ def difference_matrix_figure(
             [d.match for d in group],
             [d.query for d in group],
             marker,
-            color=_MATRIX_REJECTED if status == "rejected" else COLOURS[status],
+            color=_MATRIX_FAINT.get(status, COLOURS[status]),
             ms=size,
-            mfc="none" if status == "rejected" else None,
+            mfc="none" if status in FAINT else None,
             ls="none",
             label=f"{LABELS[status]} ({len(group)})",
         )
@@ -263,7 +268,7 @@ def trajectory_figure(
             for d in group
             if np.isfinite(frame_positions[[d.query, d.match], :2]).all()
         ]
-        faint = status == "rejected"
+        faint = status in FAINT
         lines = LineCollection(
             segments,
             colors=COLOURS[status],

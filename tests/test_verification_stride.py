@@ -6,6 +6,7 @@ query_interval_s = 2 s the same real frames run the stride path (s = 4).
 
 from __future__ import annotations
 
+from collections import Counter
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -242,3 +243,18 @@ def test_ranged_reads_do_not_parse_the_summary_again(monkeypatch) -> None:
             t0 = 1_700_000_000_000_000_000 + start * 500_000_000
             assert len(list(source.image_messages(TOPIC, t0, t0 + 10**9))) == 2
     assert opened == 1 and len(parsed) == 1
+
+
+def test_pictures_draw_skipped_pairs_apart_from_rejected_ones(strided_log) -> None:
+    plots = pytest.importorskip("doseqslam_logs.plots")
+    from doseqslam_logs.cli.evaluate_log import _detections
+
+    log = read_annotations(strided_log)
+    gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
+    statuses = Counter(d.status for d in _detections(plots, log, gt, 0))
+    verdicts = Counter(lc["verification"] for lc in log.loop_closures)
+    assert statuses["skipped"] == verdicts["skipped"] > 0
+    assert statuses["rejected"] == verdicts["rejected"]
+    assert statuses["tp"] + statuses["fp"] == verdicts["accepted"]
+    assert list(plots._by_status(_detections(plots, log, gt, 0)))[:2] == ["skipped", "rejected"]
+    assert plots.LABELS["skipped"] == "not checked (query stride)"

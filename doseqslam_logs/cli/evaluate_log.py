@@ -284,8 +284,8 @@ def _detections(plots: ModuleType, log: AnnotatedLog, gt: GroundTruth, tolerance
     truth = gt.are_true([q for q, _ in pairs], [m for _, m in pairs], tolerance)
     detections = []
     for lc, (query, match), true in zip(log.loop_closures, pairs, truth, strict=True):
-        unreported = lc.get("verification") in NOT_REPORTED  # drawn faint, as not reported
-        status = "rejected" if unreported else ("tp" if true else "fp")
+        verdict = lc.get("verification")
+        status = verdict if verdict in NOT_REPORTED else ("tp" if true else "fp")
         detections.append(plots.Detection(query, match, status))
     return detections
 
