@@ -44,7 +44,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     parser.add_argument(
         "--include-rejected",
         action="store_true",
-        help="csv/jsonl: also the pairs geometric verification rejected (column verification)",
+        help="csv/jsonl: also the pairs verification rejected or skipped (column verification)",
     )
     add_pose_graph_options(parser)
     parser.set_defaults(run=run)

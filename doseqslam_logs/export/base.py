@@ -19,7 +19,7 @@ DEFAULT_LOOP_ROTATION_SIGMA_DEG = 10.0
 class ExportOptions:
     """Choices of one export; each format reads the ones it needs."""
 
-    include_rejected: bool = False  # csv/jsonl: also the pairs verification rejected
+    include_rejected: bool = False  # csv/jsonl: also the pairs verification rejected or skipped
     odometry_topic: str | None = None  # tum/g2o: the pose topic placed at camera times
     poses_log: Path | None = None  # where that topic lives (default: the annotated log itself)
     stride: int = 1  # tum/g2o: keep every stride-th frame (plus loop-closure frames)
