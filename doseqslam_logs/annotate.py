@@ -9,7 +9,6 @@ import hashlib
 import json
 import time
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +37,7 @@ from .sources import open_source, pick_image_topic
 from .sources.base import MCAP_MAGIC
 from .sources.camera_info import read_camera_info
 from .sources.salvage import SalvageReport, salvage_mcap
-from .verification import Intrinsics, VerificationParameters, VerificationStats, Verifier
+from .verification import Intrinsics, VerificationParameters, VerificationStats
 from .verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
 
 HASH_BLOCK = 1 << 20
@@ -131,17 +130,18 @@ def verify_decisions(
         info = read_camera_info(read_path, topic)
         intrinsics = None if info is None else Intrinsics(info.fx, info.fy, info.cx, info.cy)
         origin = "" if info is None else info.topic
-    params, workers = options.verification, max(1, options.workers)
-
-    @contextmanager
-    def open_verifier() -> Iterator[Verifier]:
-        with LogFrameReader(read_path, topic, frame_times) as reader:
-            yield Verifier(params, reader, intrinsics, options.verification_cache_bytes // workers)
-
     start = time.perf_counter()
-    checked, stats = verify_in_threads(result.decisions, open_verifier, workers)
+    checked, stats = verify_in_threads(
+        result.decisions,
+        lambda: LogFrameReader(read_path, topic, frame_times),
+        options.verification,
+        intrinsics,
+        options.workers,
+        options.verification_cache_bytes,
+    )
     verified = {item.decision.sequence_id: item for item in checked}
-    return Verification(params, intrinsics, origin, verified, stats, time.perf_counter() - start)
+    wall_s = time.perf_counter() - start
+    return Verification(options.verification, intrinsics, origin, verified, stats, wall_s)
 
 
 def source_sha256(path: Path) -> str:

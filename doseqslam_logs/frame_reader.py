@@ -17,21 +17,17 @@ from __future__ import annotations
 
 from collections import OrderedDict, defaultdict
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
 
 import cv2
 import numpy as np
 
-from .detector.events import SequenceDecision
 from .sinks.messages import NO_STAMP, FrameTimes
 from .sources import open_source
 from .sources.base import ImageMessage
 from .sources.images import decode_gray
-from .verification import Intrinsics, VerificationParameters, VerificationStats, Verifier
 from .verification.geometry import GrayImage
-from .verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
 
 # Wanted frames closer than this are read in one range (reading a few unwanted messages is
 # cheaper than a new seek and chunk decompression).
@@ -150,21 +146,3 @@ class FolderFrameReader:
             if gray is None:
                 raise LookupError(f"{self.images[index]}: cannot decode image")
             yield index, np.ascontiguousarray(gray, dtype=np.uint8)
-
-
-def verify_folder(
-    decisions: Sequence[SequenceDecision],
-    images: Sequence[Path],
-    params: VerificationParameters,
-    intrinsics: Intrinsics | None = None,
-    workers: int = 2,
-) -> tuple[list[VerifiedDecision], VerificationStats]:
-    """The verification stage over an image folder's decisions (`evaluate --images`), on
-    `workers` threads sharing DEFAULT_CACHE_BYTES of feature cache."""
-
-    @contextmanager
-    def open_verifier() -> Iterator[Verifier]:
-        cache = DEFAULT_CACHE_BYTES // max(1, workers)
-        yield Verifier(params, FolderFrameReader(images), intrinsics, cache)
-
-    return verify_in_threads(decisions, open_verifier, workers)

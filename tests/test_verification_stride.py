@@ -7,7 +7,7 @@ query_interval_s = 2 s the same real frames run the stride path (s = 4).
 from __future__ import annotations
 
 from collections import Counter
-from contextlib import contextmanager
+from contextlib import nullcontext
 from pathlib import Path
 
 import cv2
@@ -31,7 +31,6 @@ from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
     VERIFIED_THRESHOLD,
     FrameFeatures,
-    Verifier,
 )
 from doseqslam_logs.verification.geometry import _ratio_matches
 from doseqslam_logs.verification.stage import query_stride, verify_in_threads
@@ -141,12 +140,12 @@ def test_threads_give_the_same_checks(shared_data) -> None:
     images = list_images(shared_data / "rtabmap_samples_loop" / "images")
     sequences = [decision(3, 1_000_000_000, 3, first=60 + 5 * k, sequence_id=k) for k in range(4)]
 
-    @contextmanager
-    def open_verifier():
-        yield Verifier(DEFAULT_VERIFICATION.replace(refine_radius=3), FolderFrameReader(images))
-
-    lone, lone_stats = verify_in_threads(sequences, open_verifier, 1)
-    threaded, threaded_stats = verify_in_threads(sequences, open_verifier, 3)
+    reader = FolderFrameReader(images)
+    params = DEFAULT_VERIFICATION.replace(refine_radius=3)
+    lone, lone_stats = verify_in_threads(sequences, lambda: nullcontext(reader), params)
+    threaded, threaded_stats = verify_in_threads(
+        sequences, lambda: nullcontext(reader), params, workers=3
+    )
     assert [v.decision.sequence_id for v in threaded] == [0, 1, 2, 3]
     assert lone == threaded
     assert lone_stats.pairs == threaded_stats.pairs == 4 * 3 * 7
@@ -157,12 +156,13 @@ def test_a_failing_thread_stops_the_others() -> None:
         raise LookupError("frames gone")
         yield  # pragma: no cover
 
-    @contextmanager
-    def open_verifier():
-        yield Verifier(DEFAULT_VERIFICATION, broken)
-
     with pytest.raises(LookupError, match="frames gone"):
-        verify_in_threads([decision(3, 10**9, 3)] * 6, open_verifier, 2)
+        verify_in_threads(
+            [decision(3, 10**9, 3)] * 6,
+            lambda: nullcontext(broken),
+            DEFAULT_VERIFICATION,
+            workers=2,
+        )
 
 
 def knn_reference(query: FrameFeatures, match: FrameFeatures, ratio: float):

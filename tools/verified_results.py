@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,10 +25,11 @@ from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import Evaluation, evaluate
 from doseqslam_logs.evaluation.verified import verified_decisions
-from doseqslam_logs.frame_reader import verify_folder
+from doseqslam_logs.frame_reader import FolderFrameReader
 from doseqslam_logs.replay import replay
 from doseqslam_logs.sources.folder import folder_frames, list_images
 from doseqslam_logs.verification import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD
+from doseqslam_logs.verification.stage import verify_in_threads
 
 DATA = Path("../shared/data")
 
@@ -90,7 +92,10 @@ def rows(data: Path, dataset: Dataset, method: str) -> list[str]:
     folder = data / dataset.images
     start = time.perf_counter()
     decisions = replay(folder_frames(folder, 1.0), make_detector(params), workers=2).decisions
-    checked, stats = verify_folder(decisions, list_images(folder), DEFAULT_VERIFICATION)
+    reader = FolderFrameReader(list_images(folder))
+    checked, stats = verify_in_threads(
+        decisions, lambda: nullcontext(reader), DEFAULT_VERIFICATION, workers=2
+    )
     verified = verified_decisions(checked)
     seconds = time.perf_counter() - start
     print(

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,10 +26,11 @@ from ..errors import GroundTruthError, UsageError
 from ..evaluation.groundtruth import load_ground_truth
 from ..evaluation.metrics import Evaluation, evaluate, format_report, format_side_by_side
 from ..evaluation.verified import verified_decisions
-from ..frame_reader import verify_folder
+from ..frame_reader import FolderFrameReader
 from ..replay import ReplayResult, replay
 from ..sources.folder import folder_frames, list_images
 from ..verification import Intrinsics, VerificationParameters, VerificationStats
+from ..verification.stage import verify_in_threads
 from . import evaluate_log
 from .params_args import (
     add_parameter_options,
@@ -182,7 +184,10 @@ def _verify(
         return None
     intrinsics = intrinsics_from_args(args)
     start = time.perf_counter()
-    verified, stats = verify_folder(result.decisions, images, params, intrinsics, VERIFY_THREADS)
+    reader = FolderFrameReader(images)  # stateless: one for every thread
+    verified, stats = verify_in_threads(
+        result.decisions, lambda: nullcontext(reader), params, intrinsics, VERIFY_THREADS
+    )
     wall_s = time.perf_counter() - start
     return _FolderVerification(params, intrinsics, verified_decisions(verified), stats, wall_s)
 

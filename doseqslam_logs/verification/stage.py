@@ -309,23 +309,29 @@ class Verifier:
 
 def verify_in_threads(
     decisions: Sequence[SequenceDecision],
-    open_verifier: Callable[[], AbstractContextManager[Verifier]],
-    workers: int,
+    open_loader: Callable[[], AbstractContextManager[FrameLoader]],
+    params: VerificationParameters,
+    intrinsics: Intrinsics | None = None,
+    workers: int = 1,
+    cache_bytes: int = DEFAULT_CACHE_BYTES,
 ) -> tuple[list[VerifiedDecision], VerificationStats]:
     """`Verifier.verify` of each decision, on `workers` threads; results in decision order.
 
-    Each thread opens its own verifier (its own frame reader and feature cache) and takes the
-    next decision as it finishes one. OpenCV's matching and robust fits release the GIL, so
-    the threads run on separate cores. A decision's checks depend on that decision alone, so
-    the results are the same for any number of workers. Stats are summed over the threads.
+    Each thread opens its own frame loader and has its own Verifier, with an equal share of
+    `cache_bytes`, and takes the next decision as it finishes one. OpenCV's matching and robust
+    fits release the GIL, so the threads run on separate cores. A decision's checks depend on
+    that decision alone, so the results are the same for any number of workers. Stats are
+    summed over the threads.
     """
+    workers = max(1, workers)
     results: list[VerifiedDecision | None] = [None] * len(decisions)
     stats = VerificationStats()
     lock, failed = threading.Lock(), threading.Event()
     order = iter(range(len(decisions)))
 
     def work() -> None:
-        with open_verifier() as verifier:
+        with open_loader() as loader:
+            verifier = Verifier(params, loader, intrinsics, cache_bytes // workers)
             try:
                 while not failed.is_set():
                     with lock:
@@ -340,7 +346,7 @@ def verify_in_threads(
                 with lock:
                     stats.add(verifier.stats)
 
-    if workers <= 1:
+    if workers == 1:
         work()
     else:
         with ThreadPoolExecutor(workers, thread_name_prefix="verify") as pool:
