@@ -9,6 +9,7 @@ import hashlib
 import json
 import time
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -275,6 +276,25 @@ def _annotate(
     recovery: SalvageReport | None,
 ) -> AnnotateResult:
     """annotate_log on `read_path`: the log itself, or the copy that --recover made of it."""
+    # Hashing the input (seconds on an hour-long log) runs beside the replay, not after it.
+    with ThreadPoolExecutor(1, thread_name_prefix="sha256") as hashing:
+        digest = hashing.submit(source_sha256, log)
+        return _annotate_hashed(
+            read_path, log, output, params, options, progress, expected, recovery, digest
+        )
+
+
+def _annotate_hashed(
+    read_path: Path,
+    log: Path,
+    output: Path,
+    params: Parameters,
+    options: AnnotateOptions,
+    progress: Callable[[int], None] | None,
+    expected: Callable[[int | None], None] | None,
+    recovery: SalvageReport | None,
+    digest: Future[str],
+) -> AnnotateResult:
     counts = FrameCounts()
     recorder = _TimesRecorder()
     with open_source(read_path) as source:
@@ -307,7 +327,7 @@ def _annotate(
         )
     frame_times = recorder.frame_times()
     verification = verify_decisions(read_path, topic, result, frame_times, options)
-    sha256 = source_sha256(log)
+    sha256 = digest.result()
     metadata = run_metadata(params, result, counts, log, sha256, topic, options, recovery)
     if verification is not None:
         metadata.update(verification.metadata())

@@ -26,7 +26,8 @@ from .sources.mcap_source import DESERIALIZERS
 TOPICS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
 
 # A loop closure's `verification`: "accepted", "rejected" (the check refused it), "skipped"
-# (a high frame rate's query stride left it out) or "off" (no verification).
+# (left unchecked at a high frame rate: the query stride, or a given-up sequence) or "off"
+# (no verification).
 ACCEPTED, REJECTED, SKIPPED = "accepted", "rejected", "skipped"
 NOT_REPORTED = frozenset({REJECTED, SKIPPED})
 

@@ -43,7 +43,7 @@ LABELS: dict[Status, str] = {
     "fp": "loop closure, false",
     "reported": "loop closure",
     "rejected": "rejected by verification",
-    "skipped": "not checked (query stride)",
+    "skipped": "not checked (high frame rate)",
 }
 # Candidates that are not reported: drawn faint, under the reported ones.
 FAINT: frozenset[Status] = frozenset({"rejected", "skipped"})

@@ -99,6 +99,10 @@ def test_one_candidate_in_s_is_checked_and_the_others_are_not_reported(strided_l
         for z, lc in enumerate(pairs):
             if z % 4:
                 assert lc["verification"] == "skipped" and lc["inliers"] == -1
+                assert lc["rejection_reason"] == "not checked"
+                skipped += 1
+            elif lc["verification"] == "skipped":  # after two hopeless checks of the sequence
+                assert lc["rejection_reason"] == "sequence given up" and lc["inliers"] == -1
                 skipped += 1
             else:
                 assert lc["verification"] in ("accepted", "rejected") and lc["inliers"] >= 0
@@ -106,7 +110,7 @@ def test_one_candidate_in_s_is_checked_and_the_others_are_not_reported(strided_l
     assert all(lc["verification"] == "accepted" for lc in log.reported_loop_closures)
     assert len(log.reported_loop_closures) >= 15
     summary = loops_summary(log, len(log.reported_loop_closures), include_rejected=False)
-    assert f"{skipped} not checked (query stride)" in summary
+    assert f"{skipped} not checked (high frame rate)" in summary
 
 
 def test_strided_acceptances_are_true_places(strided_log) -> None:
@@ -133,6 +137,33 @@ def test_strided_search_checks_far_fewer_pairs_than_the_exhaustive_one(tmp_path)
     assert strided.stats.pairs <= 20 * checked
     assert exhaustive.stats.pairs > 40 * exhaustive.stats.candidates
     assert strided.stats.pairs < exhaustive.stats.pairs / 8
+
+
+def test_two_hopeless_checks_give_the_sequence_up() -> None:
+    """Blank frames have no features: every check is hopeless. At 10 Hz (s = 5) the first two
+    of the six checked candidates are rejected, the other four skipped as given up, unread."""
+    read: list[int] = []
+
+    def blank(indices):
+        read.extend(indices)
+        return ((i, np.zeros((48, 64), np.uint8)) for i in indices)
+
+    [verified], stats = verify_in_threads(
+        [decision(30, 100_000_000, 30)], lambda: nullcontext(blank), DEFAULT_VERIFICATION
+    )
+    reasons = [check.verdict.reason for check in verified.checks]
+    assert reasons[0] == reasons[5] == "too few features"
+    assert [reasons[z] for z in (10, 15, 20, 25)] == ["sequence given up"] * 4
+    assert all(reasons[z] == "not checked" for z in range(30) if z % 5)
+    assert stats.given_up == 4 and stats.skipped == 28 and stats.accepted == 0
+    # Candidate 0 (match 10, window 0..35): the 2s grid 0, 10, 20, 30, hopeless, so no finer
+    # step; candidate 5 (match 15): the tracked frame 15 alone, hopeless again: rejected.
+    assert stats.pairs == 5
+    assert {100, 105}.issubset(read) and not {110, 115, 120, 125} & set(read)
+    at_2_hz, _ = verify_in_threads(  # stride 1: exhaustive, nothing is given up
+        [decision(6, 500_000_000, 6)], lambda: nullcontext(blank), DEFAULT_VERIFICATION
+    )
+    assert all(check.verdict.reason == "too few features" for check in at_2_hz[0].checks)
 
 
 def test_threads_give_the_same_checks(shared_data) -> None:
@@ -257,4 +288,4 @@ def test_pictures_draw_skipped_pairs_apart_from_rejected_ones(strided_log) -> No
     assert statuses["rejected"] == verdicts["rejected"]
     assert statuses["tp"] + statuses["fp"] == verdicts["accepted"]
     assert list(plots._by_status(_detections(plots, log, gt, 0)))[:2] == ["skipped", "rejected"]
-    assert plots.LABELS["skipped"] == "not checked (query stride)"
+    assert plots.LABELS["skipped"] == "not checked (high frame rate)"

@@ -130,7 +130,7 @@ def summary_line(result: AnnotateResult) -> str:
         notes.insert(
             0,
             f"verified {stats.candidates} candidate pairs: {stats.accepted} accepted"
-            f"{f', {stats.skipped} skipped (query stride)' if stats.skipped else ''} "
+            f"{f', {stats.skipped} skipped (high frame rate)' if stats.skipped else ''} "
             f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
             f"{verification.wall_s:.1f} s; "
             f"{pose if verification.intrinsics else 'fundamental matrix, no intrinsics'})",

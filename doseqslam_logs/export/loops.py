@@ -151,5 +151,5 @@ def loops_summary(log: AnnotatedLog, written: int, include_rejected: bool) -> st
     if include_rejected or not (rejected or skipped):
         return f"{written} loop closures"
     left_out = [f"{rejected} rejected by verification"] if rejected else []
-    left_out += [f"{skipped} not checked (query stride)"] if skipped else []
+    left_out += [f"{skipped} not checked (high frame rate)"] if skipped else []
     return f"{written} loop closures ({', '.join(left_out)} left out)"
