@@ -34,6 +34,7 @@ from mcap.summary import Summary
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
 from doseqslam_logs.sources.base import MCAP_MAGIC, ChannelInfo, ImageMessage
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
+from doseqslam_logs.sources.mcap_index import indexed_topic_messages
 
 Deserializer = Callable[[bytes], Any]
 _Record = tuple[Schema | None, Channel, Message]
@@ -412,6 +413,10 @@ class McapSource:
         self, file: IO[bytes], topic: str, start_ns: int | None, end_ns: int | None
     ) -> Iterator[_Record]:
         if self.indexed:
+            assert self._summary is not None
+            by_index = indexed_topic_messages(file, self._summary, topic, start_ns, end_ns)
+            if by_index is not None:
+                return by_index
             seeking = self._reader(file)
             # SeekingReader re-parses the summary section on its first call, 43 ms for the chunk
             # and message indexes of an 834 MB hour: once per ranged read of the verification
