@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -145,6 +146,20 @@ def verify_decisions(
     return Verification(options.verification, intrinsics, origin, verified, stats, wall_s)
 
 
+def _hash_in_background(path: Path) -> Future[str]:
+    """`source_sha256` on its own thread, beside the replay (seconds on an hour-long log)."""
+    future: Future[str] = Future()
+
+    def run() -> None:
+        try:
+            future.set_result(source_sha256(path))
+        except BaseException as exc:  # handed to whoever asks for the result
+            future.set_exception(exc)
+
+    threading.Thread(target=run, name="sha256", daemon=True).start()
+    return future
+
+
 def source_sha256(path: Path) -> str:
     """sha256 of a log file; of a rosbag2 folder, of its files' names and bytes in name order."""
     digest = hashlib.sha256()
@@ -276,25 +291,7 @@ def _annotate(
     recovery: SalvageReport | None,
 ) -> AnnotateResult:
     """annotate_log on `read_path`: the log itself, or the copy that --recover made of it."""
-    # Hashing the input (seconds on an hour-long log) runs beside the replay, not after it.
-    with ThreadPoolExecutor(1, thread_name_prefix="sha256") as hashing:
-        digest = hashing.submit(source_sha256, log)
-        return _annotate_hashed(
-            read_path, log, output, params, options, progress, expected, recovery, digest
-        )
-
-
-def _annotate_hashed(
-    read_path: Path,
-    log: Path,
-    output: Path,
-    params: Parameters,
-    options: AnnotateOptions,
-    progress: Callable[[int], None] | None,
-    expected: Callable[[int | None], None] | None,
-    recovery: SalvageReport | None,
-    digest: Future[str],
-) -> AnnotateResult:
+    digest = _hash_in_background(log)
     counts = FrameCounts()
     recorder = _TimesRecorder()
     with open_source(read_path) as source:
