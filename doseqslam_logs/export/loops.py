@@ -87,12 +87,9 @@ def selected_loop_closures(log: AnnotatedLog, include_rejected: bool) -> list[di
     return list(log.loop_closures if include_rejected else log.reported_loop_closures)
 
 
-def rejected_count(log: AnnotatedLog) -> int:
-    return sum(1 for lc in log.loop_closures if lc.get("verification") == REJECTED)
-
-
-def skipped_count(log: AnnotatedLog) -> int:
-    return sum(1 for lc in log.loop_closures if lc.get("verification") == SKIPPED)
+def verification_count(log: AnnotatedLog, verdict: str) -> int:
+    """Loop closures on the channel whose `verification` is `verdict`."""
+    return sum(1 for lc in log.loop_closures if lc.get("verification") == verdict)
 
 
 def _finite(value: Any) -> float | None:
@@ -147,7 +144,7 @@ def loop_closure_row(log: AnnotatedLog, lc: Mapping[str, Any]) -> dict[str, Any]
 
 
 def loops_summary(log: AnnotatedLog, written: int, include_rejected: bool) -> str:
-    rejected, skipped = rejected_count(log), skipped_count(log)
+    rejected, skipped = verification_count(log, REJECTED), verification_count(log, SKIPPED)
     if include_rejected or not (rejected or skipped):
         return f"{written} loop closures"
     left_out = [f"{rejected} rejected by verification"] if rejected else []

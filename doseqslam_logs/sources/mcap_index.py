@@ -12,28 +12,24 @@ mcap's own log-time queue.
 from __future__ import annotations
 
 import struct
-import zlib
 from collections.abc import Iterator
 from typing import IO
 
-import lz4.frame
-import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, ChunkIndex, Message, Schema
-from mcap.stream_reader import CRCValidationError
 from mcap.summary import Summary
 
-try:  # mcap's own log-time queue, so that the order is the SeekingReader's
+try:  # mcap's own log-time queue and chunk decompression, so that it reads as SeekingReader
     from mcap._message_queue import make_message_queue
+    from mcap.stream_reader import get_chunk_data_stream
 except ImportError:  # pragma: no cover - older mcap: read the chunks whole
     make_message_queue = None  # type: ignore[assignment]
 
 Record = tuple[Schema | None, Channel, Message]
 _NO_END = 2**64
 
-_MESSAGE_INDEX = 0x07
-_MESSAGE = 0x05
 _RECORD_HEADER = struct.Struct("<BQ")  # opcode, record length
 _MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _INDEX_HEADER = struct.Struct("<HI")  # channel id, byte length of the (time, offset) pairs
@@ -101,7 +97,7 @@ def _index_entries(file: IO[bytes], position: int) -> list[tuple[int, int]]:
     file.seek(position)
     opcode, length = _RECORD_HEADER.unpack(file.read(_RECORD_HEADER.size))
     body = file.read(length)
-    if opcode != _MESSAGE_INDEX or len(body) != length or length < _INDEX_HEADER.size:
+    if opcode != Opcode.MESSAGE_INDEX or len(body) != length or length < _INDEX_HEADER.size:
         raise McapError(f"no message index record at offset {position}")
     _, size = _INDEX_HEADER.unpack_from(body)
     pairs = body[_INDEX_HEADER.size : _INDEX_HEADER.size + size]
@@ -112,26 +108,18 @@ def _index_entries(file: IO[bytes], position: int) -> list[tuple[int, int]]:
 
 
 def _chunk_data(file: IO[bytes], index: ChunkIndex) -> bytes:
-    """The chunk's records, decompressed, their CRC checked (as the SeekingReader does)."""
+    """The chunk's records, decompressed and their CRC checked, as the SeekingReader does."""
     file.seek(index.chunk_start_offset + _RECORD_HEADER.size)
     chunk = Chunk.read(ReadDataStream(file))
-    if chunk.compression == "zstd":
-        data = zstandard.ZstdDecompressor().decompress(chunk.data, chunk.uncompressed_size)
-    elif chunk.compression == "lz4":
-        data = lz4.frame.decompress(chunk.data)
-    elif chunk.compression == "":
-        data = chunk.data
-    else:
-        raise McapError(f"unsupported chunk compression {chunk.compression!r}")
-    if chunk.uncompressed_crc and (crc := zlib.crc32(data)) != chunk.uncompressed_crc:
-        raise CRCValidationError(chunk.uncompressed_crc, crc, chunk)
-    return bytes(data)
+    stream, length = get_chunk_data_stream(chunk, validate_crc=True)
+    data: bytes = stream.read(length)
+    return data
 
 
 def _message_at(data: bytes, offset: int) -> Message:
     opcode, length = _RECORD_HEADER.unpack_from(data, offset)
     body = offset + _RECORD_HEADER.size
-    if opcode != _MESSAGE or length < _MESSAGE_HEADER.size or body + length > len(data):
+    if opcode != Opcode.MESSAGE or length < _MESSAGE_HEADER.size or body + length > len(data):
         raise McapError(f"no message record at chunk offset {offset}")
     channel_id, sequence, log_time, publish_time = _MESSAGE_HEADER.unpack_from(data, body)
     payload = data[body + _MESSAGE_HEADER.size : body + length]
