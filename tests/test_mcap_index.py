@@ -19,9 +19,14 @@ SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOOPS = SAMPLES / "drive_loops.ros2.mcap"
 
 
+def summary_of(path: Path):
+    with McapSource(path) as source:
+        return source._summary if source.indexed else None
+
+
 def indexed_files(shared_data: Path) -> list[Path]:
     files = sorted(shared_data.rglob("*.mcap")) + sorted(SAMPLES.glob("*.mcap"))
-    return [f for f in files if McapSource(f).indexed]
+    return [f for f in files if summary_of(f) is not None]
 
 
 def reference(path: Path, topic: str, start: int | None, end: int | None) -> list[tuple]:
@@ -32,10 +37,10 @@ def reference(path: Path, topic: str, start: int | None, end: int | None) -> lis
 
 
 def by_index(path: Path, topic: str, start: int | None, end: int | None) -> list[tuple] | None:
-    source = McapSource(path)
-    assert source._summary is not None
+    summary = summary_of(path)
+    assert summary is not None
     with path.open("rb") as file:
-        records = indexed_topic_messages(file, source._summary, topic, start, end)
+        records = indexed_topic_messages(file, summary, topic, start, end)
         if records is None:
             return None
         return [(c.id, m.log_time, m.publish_time, m.sequence, m.data) for _, c, m in records]
@@ -46,7 +51,7 @@ def test_every_topic_of_the_real_files_reads_the_same(shared_data) -> None:
     assert len(files) >= 4  # real MCAP files of other tools and our samples
     compared = 0
     for path in files:
-        summary = McapSource(path)._summary
+        summary = summary_of(path)
         assert summary is not None
         first = min(c.message_start_time for c in summary.chunk_indexes)
         last = max(c.message_end_time for c in summary.chunk_indexes)
@@ -78,16 +83,16 @@ def test_chunks_without_message_indexes_fall_back(tmp_path) -> None:
         for t in range(5):
             writer.add_message(channel, t, b"{}", t)
         writer.finish()
-    source = McapSource(path)
-    assert source.indexed and source._summary is not None
+    summary = summary_of(path)
+    assert summary is not None
     with path.open("rb") as file:
-        assert indexed_topic_messages(file, source._summary, "/t", None, None) is None
+        assert indexed_topic_messages(file, summary, "/t", None, None) is None
 
 
 def test_a_corrupt_chunk_is_an_error_not_wrong_frames(tmp_path) -> None:
     damaged = tmp_path / "damaged.mcap"
     shutil.copy(LOOPS, damaged)
-    summary = McapSource(damaged)._summary
+    summary = summary_of(damaged)
     assert summary is not None
     chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
     with damaged.open("r+b") as file:  # a byte of the compressed records, near the end
@@ -96,5 +101,6 @@ def test_a_corrupt_chunk_is_an_error_not_wrong_frames(tmp_path) -> None:
         file.seek(-1, 1)
         file.write(bytes([byte[0] ^ 0xFF]))
     start, end = chunk.message_start_time, chunk.message_end_time + 1
-    with pytest.raises(SourceError, match="cannot read the messages"):
-        list(McapSource(damaged).image_messages("/camera/image/compressed", start, end))
+    topic, unreadable = "/camera/image/compressed", "cannot read the messages"
+    with McapSource(damaged) as source, pytest.raises(SourceError, match=unreadable):
+        list(source.image_messages(topic, start, end))

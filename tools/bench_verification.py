@@ -51,26 +51,20 @@ COLUMNS = (
 def cache_decisions(log: Path, cache: Path) -> None:
     """Replay the detector once (as annotate does, verification off) and pickle what the
     verification stage needs."""
+    from doseqslam_logs.annotate import _TimesRecorder  # annotate's own frame-time record
     from doseqslam_logs.detector import Parameters, make_detector
     from doseqslam_logs.log_frames import FrameCounts, decoded_frames
     from doseqslam_logs.replay import replay
-    from doseqslam_logs.sinks.messages import FrameTimes
     from doseqslam_logs.sources import open_source, pick_image_topic
     from doseqslam_logs.verification import VERIFIED_THRESHOLD
 
-    times: list[tuple[int, int | None]] = []
-
-    def recorded(frames: Any) -> Any:
-        for frame in frames:
-            times.append((frame.log_time_ns, frame.header_stamp_ns))
-            yield frame
-
+    recorder = _TimesRecorder()
     with open_source(log) as source:
         topic = pick_image_topic(source, None)
         frames = decoded_frames(source.image_messages(topic), FrameCounts(), "header", "skip")
         detector = make_detector(Parameters(threshold=VERIFIED_THRESHOLD))
-        result = replay(recorded(frames), detector, None, 2)
-    state = (result.decisions, FrameTimes.from_pairs(times), str(log), topic)
+        result = replay(recorder(frames), detector, None, 2)
+    state = (result.decisions, recorder.frame_times(), str(log), topic)
     cache.write_bytes(pickle.dumps(state))
 
 
