@@ -17,6 +17,7 @@ from doseqslam_logs.detector.enhance import enhance
 from doseqslam_logs.detector.preprocess import frame_vector, patch_normalize
 from doseqslam_logs.detector.trajectory import (
     distinct_velocities,
+    next_best_starts,
     normalize,
     offsets,
     trajectory_scores,
@@ -147,3 +148,33 @@ def test_trajectory_association_follows_the_best_velocity() -> None:
     enhanced[0, 3] = enhanced[1, 4] = enhanced[2, 6] = 0.0
     scores = trajectory_scores(enhanced, VELOCITIES)
     assert trajectory_matches(scores, 3).tolist() == [3, 4, 6]
+
+
+def test_next_best_starts_by_hand() -> None:
+    scores = np.array([5, 1, 2, 9, 3, 0.5, 4, np.inf], np.float32)
+    # Best 5 (0.5) rules out 4 and 6; then 1 (1.0) rules out 0 and 2; 3 (9.0) is all that is left.
+    assert next_best_starts(scores, 5, 3, 1) == [1, 3]
+    assert next_best_starts(scores, 5, 1, 1) == [1]
+    assert next_best_starts(scores, 5, 9, 1) == [1, 3]  # 7 never fits (+inf)
+    assert next_best_starts(scores, 1, 3, 3) == [5]  # 0..4 near 1, then 2..8 near 5
+    assert next_best_starts(scores, 5, 0, 1) == []
+    assert next_best_starts(scores, 5, 2, 10) == []  # everything lies within 10 of the best
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    arrays(np.float32, st.integers(1, 60), elements=st.floats(0, 10, width=32)),
+    st.integers(0, 6),
+    st.integers(1, 8),
+)
+def test_next_best_starts_are_separated_and_each_the_lowest_left(scores, count, separation):
+    best = int(np.argmin(scores))
+    starts = next_best_starts(scores, best, count, separation)
+    assert len(starts) <= count
+    chosen = [best]
+    for start in starts:
+        allowed = [j for j in range(len(scores)) if all(abs(j - c) > separation for c in chosen)]
+        assert start in allowed and scores[start] == min(scores[j] for j in allowed)
+        chosen.append(start)
+    if len(starts) < count:  # it stopped because every start lies near a chosen one
+        assert all(any(abs(j - c) <= separation for c in chosen) for j in range(len(scores)))

@@ -20,7 +20,7 @@ from doseqslam_logs.verification import VERIFIED_THRESHOLD, VerificationParamete
 # What `evaluate --images` printed on the RTAB-Map samples before verification existed (the
 # paper's decision); only the speed varies.
 PAPER_REPORT = """\
-doseqslam on {images} at 1 fps (features: sift, parameters ff26339be8201b4a, <n> frames/s)
+doseqslam on {images} at 1 fps (features: sift, parameters b66d3337fe694964, <n> frames/s)
 ground truth     : samples_GT.bmp (84 frames, 44 loop events)
 frames decided   : 84
 sequences        : 20 (length min 1, p10 2, p25 2, median 4, mean 4.20, p75 5.25, p90 6.2, max 9)

@@ -167,10 +167,14 @@ def test_verified_figures_count_accepted_pairs_at_their_refined_match(annotated)
 @pytest.fixture(scope="module")
 def verified_run(tmp_path_factory) -> tuple[Path, AnnotateResult, float]:
     """drive_loops annotated as the annotate command does: verified, at the verified th."""
-    from doseqslam_logs.verification import VERIFIED_THRESHOLD, VerificationParameters
+    from doseqslam_logs.verification import (
+        VERIFIED_THRESHOLD,
+        VerificationParameters,
+        verified_detector_parameters,
+    )
 
     out = tmp_path_factory.mktemp("evaluate_log_verified") / "drive_loops.verified.mcap"
-    params = Parameters(threshold=VERIFIED_THRESHOLD)
+    params = verified_detector_parameters()
     options = AnnotateOptions(verification=VerificationParameters())
     return out, annotate_log(LOG, out, params, options), VERIFIED_THRESHOLD
 

@@ -18,7 +18,6 @@ from hypothesis import strategies as st
 
 from doseqslam_logs.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.annotated import read_annotations
-from doseqslam_logs.detector import Parameters
 from doseqslam_logs.detector.events import Candidate, SequenceDecision
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.export.loops import loops_summary
@@ -29,8 +28,8 @@ from doseqslam_logs.sources import open_source, pick_image_topic
 from doseqslam_logs.sources.folder import list_images
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
-    VERIFIED_THRESHOLD,
     FrameFeatures,
+    verified_detector_parameters,
 )
 from doseqslam_logs.verification.geometry import _ratio_matches
 from doseqslam_logs.verification.stage import query_stride, verify_in_threads
@@ -83,7 +82,7 @@ def test_query_stride_follows_the_frame_rate() -> None:
 @pytest.fixture(scope="module")
 def strided_log(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("strided") / "loops.mcap"
-    params = Parameters(threshold=VERIFIED_THRESHOLD)
+    params = verified_detector_parameters()
     annotate_log(LOOPS, out, params, AnnotateOptions(verification=STRIDED, workers=2))
     return out
 
@@ -124,7 +123,7 @@ def test_strided_acceptances_are_true_places(strided_log) -> None:
 def test_strided_search_checks_far_fewer_pairs_than_the_exhaustive_one(tmp_path) -> None:
     """Exhaustive: up to 2r + 1 = 51 frames per checked candidate; coarse to fine with s = 4:
     at most 13 grid frames and the match, then 6 fine, and 5 while an offset is tracked."""
-    params = Parameters(threshold=VERIFIED_THRESHOLD)
+    params = verified_detector_parameters()
     results = {}
     for name, vparams in (("strided", STRIDED), ("exhaustive", DEFAULT_VERIFICATION)):
         options = AnnotateOptions(verification=vparams, sidecar=True, workers=1)

@@ -7,7 +7,8 @@ process) is its own:
 * decode: the camera channel read and decoded, nothing else (sources + log_frames.decoded_frames,
   the same path annotate uses);
 * full: `annotate_log` with the `annotate` command's defaults: geometric verification on (th
-  raised to VERIFIED_THRESHOLD) and the whole input copied into the output;
+  raised to VERIFIED_THRESHOLD, next-best trajectories on) and the whole input copied into the
+  output;
 * unverified: the same with verification off (`--no-verify`, the paper's decision, th 0.75);
 * sidecar (--sidecar): `full` with AnnotateOptions(sidecar=True);
 * cli (--cli): the `doseqslam-logs annotate LOG -o OUT` command with its own defaults.
@@ -112,10 +113,10 @@ def measure_annotate(
     extra: dict[str, Any] = {}
     params = Parameters()
     if verify:  # what the annotate command does by default
-        from doseqslam_logs.verification import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD
+        from doseqslam_logs.verification import DEFAULT_VERIFICATION, verified_detector_parameters
 
         extra["verification"] = DEFAULT_VERIFICATION
-        params = Parameters(threshold=VERIFIED_THRESHOLD)
+        params = verified_detector_parameters()
     options = AnnotateOptions(topic=topic, end_ns=end_ns, sidecar=sidecar, **extra)
     start = time.perf_counter()
     result = annotate_log(log, out, params, options)

@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
 """The verification stage alone on a log's decisions, for this package and others side by side.
 
-The detector's decisions (th = VERIFIED_THRESHOLD, default parameters) and the frame times are
-computed once and cached in a pickle in the temporary folder (--cache; minutes on the 1-hour
-log); each
-measurement then runs `verify_in_threads` over them with the frame re-reads of `annotate`
-(`LogFrameReader`, 2 threads, the default feature cache) in a fresh process. With --compare,
+The detector's decisions (`annotate`'s: th = VERIFIED_THRESHOLD, alternatives on) and the frame
+times are computed once and cached in a pickle in the temporary folder (--cache; minutes on
+the 1-hour log); each measurement then runs `verify_in_threads` over them with the frame
+re-reads of `annotate` (`LogFrameReader`, 2 threads, the default feature cache) in a fresh
+process. With --compare,
 each run of this package is followed by the same run of each other package, --repeat times.
 
     python tools/bench_verification.py                                   # the 1-hour log
@@ -52,17 +52,17 @@ def cache_decisions(log: Path, cache: Path) -> None:
     """Replay the detector once (as annotate does, verification off) and pickle what the
     verification stage needs."""
     from doseqslam_logs.annotate import _TimesRecorder  # annotate's own frame-time record
-    from doseqslam_logs.detector import Parameters, make_detector
+    from doseqslam_logs.detector import make_detector
     from doseqslam_logs.log_frames import FrameCounts, decoded_frames
     from doseqslam_logs.replay import replay
     from doseqslam_logs.sources import open_source, pick_image_topic
-    from doseqslam_logs.verification import VERIFIED_THRESHOLD
+    from doseqslam_logs.verification import verified_detector_parameters
 
     recorder = _TimesRecorder()
     with open_source(log) as source:
         topic = pick_image_topic(source, None)
         frames = decoded_frames(source.image_messages(topic), FrameCounts(), "header", "skip")
-        detector = make_detector(Parameters(threshold=VERIFIED_THRESHOLD))
+        detector = make_detector(verified_detector_parameters())
         result = replay(recorder(frames), detector, None, 2)
     state = (result.decisions, recorder.frame_times(), str(log), topic)
     cache.write_bytes(pickle.dumps(state))

@@ -21,14 +21,14 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
-from doseqslam_logs.detector import Parameters, make_detector
+from doseqslam_logs.detector import make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import Evaluation, evaluate
 from doseqslam_logs.evaluation.verified import verified_decisions
 from doseqslam_logs.frame_reader import FolderFrameReader
 from doseqslam_logs.replay import replay
 from doseqslam_logs.sources.folder import folder_frames, list_images
-from doseqslam_logs.verification import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD
+from doseqslam_logs.verification import DEFAULT_VERIFICATION, verified_detector_parameters
 from doseqslam_logs.verification.stage import verify_in_threads
 
 DATA = Path("../shared/data")
@@ -88,7 +88,7 @@ def main() -> int:
 
 def rows(data: Path, dataset: Dataset, method: str) -> list[str]:
     extra = {} if dataset.kappa_s is None else {"kappa_s": dataset.kappa_s}
-    params = Parameters(method=method, threshold=VERIFIED_THRESHOLD, **extra)  # type: ignore[arg-type]
+    params = verified_detector_parameters(method=method, **extra)
     folder = data / dataset.images
     start = time.perf_counter()
     decisions = replay(folder_frames(folder, 1.0), make_detector(params), workers=2).decisions

@@ -14,6 +14,7 @@ if sys.version_info >= (3, 11):
 else:
     import tomli as tomllib
 from ..verification import (
+    VERIFIED_ALTERNATIVES,
     VERIFIED_THRESHOLD,
     Intrinsics,
     VerificationParameters,
@@ -65,7 +66,8 @@ def add_verification_options(parser: argparse.ArgumentParser) -> None:
         dest="verify",
         action="store_false",
         help="report the detector's decisions unchecked (the paper's behaviour; th defaults to "
-        f"the paper's 0.75 instead of {VERIFIED_THRESHOLD:g})",
+        f"the paper's 0.75 instead of {VERIFIED_THRESHOLD:g}, and no next-best trajectories "
+        "are recorded)",
     )
     group.add_argument(
         "--intrinsics",
@@ -124,20 +126,29 @@ def intrinsics_from_args(args: argparse.Namespace) -> Intrinsics | None:
 
 def run_parameters(args: argparse.Namespace) -> Parameters:
     """The detector parameters of a run: with verification on, th defaults to
-    VERIFIED_THRESHOLD (the check supplies the precision) unless --config or --set gave one.
+    VERIFIED_THRESHOLD (the check supplies the precision) and alternatives to
+    VERIFIED_ALTERNATIVES (the check picks among them), unless --config or --set gave them.
 
     Raises ParameterError as parameters_from_args.
     """
     params = parameters_from_args(args)
-    if getattr(args, "verify", False) and not threshold_given(args):
-        params = params.replace(threshold=VERIFIED_THRESHOLD)
+    if getattr(args, "verify", False):
+        if not threshold_given(args):
+            params = params.replace(threshold=VERIFIED_THRESHOLD)
+        if not parameter_given(args, "alternatives"):
+            params = params.replace(alternatives=VERIFIED_ALTERNATIVES)
     return params
 
 
 def threshold_given(args: argparse.Namespace) -> bool:
     """True when --set or --config gave th."""
-    if any(item.partition("=")[0].strip() == "threshold" for item in args.overrides):
+    return parameter_given(args, "threshold")
+
+
+def parameter_given(args: argparse.Namespace, name: str) -> bool:
+    """True when --set or --config gave the detector parameter `name`."""
+    if any(item.partition("=")[0].strip() == name for item in args.overrides):
         return True
     if args.config:  # already read and validated by parameters_from_args
-        return "threshold" in tomllib.loads(Path(args.config).read_text(encoding="utf-8"))
+        return name in tomllib.loads(Path(args.config).read_text(encoding="utf-8"))
     return False

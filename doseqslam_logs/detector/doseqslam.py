@@ -19,14 +19,16 @@ import numpy.typing as npt
 from .association import greedy_matches, pair_differences, trajectory_matches
 from .difference import FrameStore, sad_rows
 from .enhance import enhance
-from .events import Candidate, SequenceDecision
+from .events import Alternative, Candidate, SequenceDecision
 from .params import Parameters
 from .preprocess import frame_vector
 from .segmentation import Segmenter, make_segmenter
 from .timing import StageTimes
-from .trajectory import normalize, trajectory_scores
+from .trajectory import TrajectoryScores, next_best_starts, normalize, trajectory_scores
 
 GrayImage = npt.NDArray[np.uint8]
+FloatArray = npt.NDArray[np.float32]
+IntArray = npt.NDArray[np.int64]
 
 # Weights of gamma_{k-1}, gamma_k, gamma_{k+1} in the decision (paper eq. 8).
 DECISION_WEIGHTS = (1.0, 4.0, 1.0)
@@ -53,6 +55,7 @@ class QueryResult:
     best_score: float | None = None
     second_score: float | None = None
     candidates: tuple[Candidate, ...] = ()
+    alternatives: tuple[Alternative, ...] = ()
 
 
 @dataclass
@@ -212,11 +215,22 @@ class DOSeqSLAM:
         if norm is None:  # the database is shorter than any trajectory of this sequence
             return QueryResult(database_size=database, gamma=1.0)
         with self.timings.stage("association"):
-            if self.params.association == "greedy":
-                matches = greedy_matches(enhanced, norm.best_start, self.params.velocity_max)
-            else:
-                matches = trajectory_matches(scores, norm.best_start)
+            matches = self._matches(scores, enhanced, norm.best_start)
             differences = pair_differences(enhanced, matches)
+            alternatives = tuple(
+                Alternative(
+                    start=j,
+                    velocity=scores.best_velocity(j),
+                    score=float(scores.scores[j]),
+                    match_indices=tuple(int(m) for m in self._matches(scores, enhanced, j)),
+                )
+                for j in next_best_starts(
+                    scores.scores,
+                    norm.best_start,
+                    self.params.alternatives,
+                    self.params.alternative_separation,
+                )
+            )
         candidates = tuple(
             Candidate(
                 query_index=seq.first + z,
@@ -235,7 +249,14 @@ class DOSeqSLAM:
             best_score=norm.best_score,
             second_score=norm.second_score,
             candidates=candidates,
+            alternatives=alternatives,
         )
+
+    def _matches(self, scores: TrajectoryScores, enhanced: FloatArray, start: int) -> IntArray:
+        """The database frame of each query frame on the trajectory starting at `start`."""
+        if self.params.association == "greedy":
+            return greedy_matches(enhanced, start, self.params.velocity_max)
+        return trajectory_matches(scores, start)
 
     def _decide(
         self, seq: _Sequence, previous: QueryResult | None, following: QueryResult | None
@@ -265,4 +286,5 @@ class DOSeqSLAM:
             accepted=bool(result.candidates) and f < self.params.threshold and math.isfinite(f),
             candidates=result.candidates,
             method=self.method,
+            alternatives=result.alternatives,
         )

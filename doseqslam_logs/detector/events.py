@@ -17,6 +17,17 @@ class Candidate:
 
 
 @dataclass(frozen=True)
+class Alternative:
+    """A next-best trajectory of a sequence: another start j, with the match it gives each
+    query frame (what the verification stage tries when the detector's own match fails)."""
+
+    start: int
+    velocity: float
+    score: float  # S_do[start], >= the decision's best_score
+    match_indices: tuple[int, ...]  # one per candidate, in candidate order
+
+
+@dataclass(frozen=True)
 class SequenceDecision:
     """The decision on one sequence (DOSeqSLAM) or one query frame's trajectory (SeqSLAM).
 
@@ -43,6 +54,8 @@ class SequenceDecision:
     accepted: bool  # f < threshold and a candidate exists
     candidates: tuple[Candidate, ...]
     method: str  # "doseqslam" or "seqslam"
+    # The next-best distinct starts, best first (Parameters.alternatives; empty by default).
+    alternatives: tuple[Alternative, ...] = ()
 
     @property
     def length(self) -> int:

@@ -65,6 +65,12 @@ class Parameters:
     match_ratio: float = 0.8  # Lowe ratio test for descriptor matching
     min_features: int = 10  # a frame with fewer features joins the current sequence
     max_sequence_length: int = 300  # frames; 0 turns the cap off
+    # Next-best trajectory starts recorded per sequence (each at least alternative_separation
+    # frames from the ones before), for the verification stage to try when the detector's own
+    # match fails its check. 0 is the paper; with verification on, the CLI raises it to
+    # VERIFIED_ALTERNATIVES (verification.params). DOSeqSLAM only.
+    alternatives: int = 0
+    alternative_separation: int = 10
     # SeqSLAM baseline: fixed sequence length ds.
     seqslam_length: int = 10
 
@@ -97,6 +103,8 @@ class Parameters:
             raise ParameterError("match_ratio must be in (0, 1]")
         if self.min_features < 0 or self.max_sequence_length < 0:
             raise ParameterError("min_features and max_sequence_length must be >= 0")
+        if self.alternatives < 0 or self.alternative_separation < 1:
+            raise ParameterError("alternatives must be >= 0 and alternative_separation >= 1")
 
     @property
     def velocities(self) -> tuple[float, ...]:

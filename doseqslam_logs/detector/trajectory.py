@@ -75,6 +75,22 @@ def trajectory_scores(enhanced: FloatArray, velocities: Sequence[float]) -> Traj
     return TrajectoryScores(scores, best.astype(np.int64), tuple(groups))
 
 
+def next_best_starts(scores: FloatArray, best_start: int, count: int, separation: int) -> list[int]:
+    """Up to `count` further starts, lowest S_do first, each more than `separation` frames from
+    every start chosen before it (best_start included): the runner-up trajectories. O(count x
+    database)."""
+    remaining = scores.copy()
+    starts: list[int] = []
+    chosen = best_start
+    for _ in range(count):
+        remaining[max(chosen - separation, 0) : chosen + separation + 1] = np.inf
+        if not np.isfinite(remaining).any():
+            break
+        chosen = int(np.argmin(remaining))
+        starts.append(chosen)
+    return starts
+
+
 @dataclass(frozen=True)
 class Normalized:
     """The best start j*, its score, the second-lowest score outside the window, and gamma."""

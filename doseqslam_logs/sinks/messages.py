@@ -149,12 +149,13 @@ def loop_closure_messages(
             continue
         checks = _checks(decision, verifications)
         match_bounds = (min(p.match_index for p in pairs), max(p.match_index for p in pairs))
-        for pair, check in zip(pairs, checks, strict=True):
+        for z, (pair, check) in enumerate(zip(pairs, checks, strict=True)):
             fields = {
                 **_loop_closure_fields(
                     decision, pair, match_bounds, frame_times, method, parameters_hash
                 ),
                 **_verification_fields(pair, check, frame_times),
+                **_proposal_fields(decision, z, check),
             }
             log_time = frame_times.log_time(pair.query_index)
             messages.append(TimedMessage(LOOP_CLOSURE, log_time, pair.query_index, fields))
@@ -203,6 +204,15 @@ def _verification_fields(
         **frame,
         **_pose_fields(verdict.rotation_xyzw, verdict.rotation_deg, verdict.translation_direction),
     }
+
+
+def _proposal_fields(decision: SequenceDecision, z: int, check: PairCheck | None) -> dict[str, Any]:
+    """Which trajectory's match the check accepted: 0 the detector's, k its k-th next best."""
+    proposal = 0 if check is None or not check.accepted else check.proposal
+    match = decision.loop_closures[z].match_index
+    if proposal:
+        match = decision.alternatives[proposal - 1].match_indices[z]
+    return {"proposal": proposal, "proposal_match_index": match}
 
 
 def _pose_fields(

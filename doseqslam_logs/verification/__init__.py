@@ -15,11 +15,18 @@ from .geometry import (
     refine_match,
     verify_pair,
 )
-from .params import DEFAULT_VERIFICATION, VERIFIED_THRESHOLD, VerificationParameters
+from .params import (
+    DEFAULT_VERIFICATION,
+    VERIFIED_ALTERNATIVES,
+    VERIFIED_THRESHOLD,
+    VerificationParameters,
+    verified_detector_parameters,
+)
 from .stage import PairCheck, VerificationStats, VerifiedDecision, Verifier
 
 __all__ = [
     "DEFAULT_VERIFICATION",
+    "VERIFIED_ALTERNATIVES",
     "VERIFIED_THRESHOLD",
     "FrameFeatures",
     "Intrinsics",
@@ -32,5 +39,6 @@ __all__ = [
     "best_verdict",
     "extract_features",
     "refine_match",
+    "verified_detector_parameters",
     "verify_pair",
 ]

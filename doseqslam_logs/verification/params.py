@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass, fields
 from typing import Any, Literal, get_args
 
+from ..detector.params import Parameters
 from ..errors import ParameterError
 from ..fingerprint import canonical_json, fingerprint
 
@@ -135,3 +136,19 @@ DEFAULT_VERIFICATION = VerificationParameters()
 # so the detector only needs to propose; chosen on the RTAB-Map samples and our sample logs
 # (docs/results.md, "Verified loop closures").
 VERIFIED_THRESHOLD = 0.99
+# The detector's alternatives when verification is on (unless given): a candidate whose match
+# fails its check is tried again at the same query's match on the sequence's next-best
+# trajectory starts, best first. 3 is where the tuning sets (RTAB-Map, our sample logs) stop
+# gaining true pairs (docs/results.md, "Next-best trajectories").
+VERIFIED_ALTERNATIVES = 3
+
+
+def verified_detector_parameters(**changes: Any) -> Parameters:
+    """The detector's defaults as `annotate` and `evaluate` run them with verification on
+    (th = VERIFIED_THRESHOLD, alternatives = VERIFIED_ALTERNATIVES), with `changes` applied.
+
+    Raises:
+        ParameterError: for an unknown or invalid parameter.
+    """
+    base = Parameters(threshold=VERIFIED_THRESHOLD, alternatives=VERIFIED_ALTERNATIVES)
+    return base.replace(**changes)

@@ -9,7 +9,12 @@ queries, a match window) are loaded in one read.
 
 Each candidate (q, m) is checked against every frame of m +- r inside the sequence's database;
 the frame with the most inliers is the refined match, and the pair is accepted when its inliers
-reach `min_inliers` (`refine_match`). Rejected pairs are kept with their verdict.
+reach `min_inliers` (`refine_match`). When it fails and the detector recorded next-best
+trajectories of the sequence (`SequenceDecision.alternatives`), the same query is checked
+against each of them in turn, at the match that trajectory gives it, +- r: the first that
+passes is kept (`PairCheck.proposal` says which). A wrong trajectory is the detector's usual
+failure on a revisit (a similar stretch scores a little lower than the true one), and the check
+tells them apart. Rejected pairs are kept with their verdict.
 
 High frame rates (`query_stride` > 1: more than one frame per `query_interval_s`): neighbouring
 frames are near copies, and checking each of them against 2r + 1 frames would cost more than
@@ -27,6 +32,8 @@ detector, so a trajectory that is wrong at two queries stays wrong. On the first
 of the 10 Hz hour, giving up checked 39 % fewer pairs and accepted the same 368 pairs; the
 2s grid then checked 30 % fewer again, with the same 318 true pairs among 367 accepted
 (docs/performance.md). At s = 1 every candidate gets the exhaustive window, exactly as before.
+Next-best trajectories are tried at s = 1 only: at high frame rates they would multiply the
+stage's cost, which the rules above keep bounded.
 """
 
 from __future__ import annotations
@@ -77,6 +84,9 @@ class PairCheck:
     candidate: Candidate
     refined_match_index: int  # the frame of match +- r with the most inliers
     verdict: Verdict
+    # 0: the detector's match; k > 0: the match on the sequence's k-th next-best trajectory
+    # (decision.alternatives[k - 1]), whose +- r window held the refined match.
+    proposal: int = 0
 
     @property
     def accepted(self) -> bool:
@@ -111,6 +121,7 @@ class VerificationStats:
     decisions: int = 0
     candidates: int = 0
     accepted: int = 0
+    from_alternatives: int = 0  # of the accepted: on a next-best trajectory (proposal > 0)
     skipped: int = 0  # candidates left unchecked (counted in `candidates`)
     given_up: int = 0  # of the skipped: after their sequence's two hopeless checks
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
@@ -208,7 +219,7 @@ class Verifier:
         if stride == 1:  # every query and window frame will be needed: read them in one go
             needed = {c.query_index for c in decision.candidates}
             for candidate in decision.candidates:
-                needed.update(self._window(candidate, decision.database_size))
+                needed.update(self._window(candidate.match_index, decision.database_size))
             features = self._features(sorted(needed))
         checks: list[PairCheck] = []
         previous: PairCheck | None = None  # the last check of this sequence (stride > 1)
@@ -221,12 +232,18 @@ class Verifier:
                 given_up = self._skipped(GIVEN_UP_REASON)
                 checks.append(PairCheck(candidate, candidate.match_index, given_up))
                 continue
-            previous = self._check(candidate, decision.database_size, stride, previous, features)
+            seen: dict[int, Verdict] = {}  # window frame -> verdict of this query
+            previous = self._check(
+                candidate, decision.database_size, stride, previous, features, seen
+            )
+            if stride == 1 and not previous.accepted:
+                previous = self._try_alternatives(decision, z, previous, seen)
             checks.append(previous)
             hopeless = stride > 1 and self._hopeless(previous.verdict)
             hopeless_run = hopeless_run + 1 if hopeless else 0
         self.stats.candidates += len(checks)
         self.stats.accepted += sum(check.accepted for check in checks)
+        self.stats.from_alternatives += sum(c.accepted and c.proposal > 0 for c in checks)
         self.stats.skipped += sum(check.skipped for check in checks)
         self.stats.given_up += sum(check.verdict.reason == GIVEN_UP_REASON for check in checks)
         return VerifiedDecision(decision, tuple(checks))
@@ -241,15 +258,16 @@ class Verifier:
         stride: int,
         previous: PairCheck | None,
         features: dict[int, FrameFeatures],
+        seen: dict[int, Verdict],
     ) -> PairCheck:
         """One candidate: its window searched exhaustively (stride 1), or tracked from the
-        previous check of its sequence and, failing that, coarse to fine (module docstring)."""
-        window = self._window(candidate, database_size)
+        previous check of its sequence and, failing that, coarse to fine (module docstring).
+        `seen` collects the query's verdict against each frame, so each pair is checked once."""
+        window = self._window(candidate.match_index, database_size)
         query = features.get(candidate.query_index)
         if query is None:  # stride > 1: loaded when checked (a given-up sequence needs fewer)
             query = self._features([candidate.query_index])[candidate.query_index]
         match = candidate.match_index
-        seen: dict[int, Verdict] = {}  # window frame -> verdict, each pair checked once
 
         def best(frames: Iterable[int]) -> tuple[int, Verdict]:
             self._check_frames(query, [m for m in frames if m in window], seen)
@@ -275,6 +293,24 @@ class Verifier:
             refined, verdict = best(m for m in near if m % spacing == 0)
         return PairCheck(candidate, refined, verdict)
 
+    def _try_alternatives(
+        self, decision: SequenceDecision, z: int, rejected: PairCheck, seen: dict[int, Verdict]
+    ) -> PairCheck:
+        """Candidate z checked at each next-best trajectory's match (+- r) in turn: the first
+        that passes, else the rejected check of the detector's own match."""
+        query_index = rejected.candidate.query_index
+        query: FrameFeatures | None = None
+        for number, alternative in enumerate(decision.alternatives, start=1):
+            match = alternative.match_indices[z]
+            window = self._window(match, decision.database_size)
+            if query is None:
+                query = self._features([query_index])[query_index]
+            self._check_frames(query, window, seen)
+            refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
+            if verdict.accepted:
+                return PairCheck(rejected.candidate, refined, verdict, proposal=number)
+        return rejected
+
     def _hopeless(self, verdict: Verdict) -> bool:
         """Under half of min_inliers: no near copy of this frame is likely to pass."""
         return 2 * verdict.inliers < self.params.min_inliers
@@ -287,9 +323,9 @@ class Verifier:
         if new:
             seen.update(self._verdicts(query, new, self._features(new)))
 
-    def _window(self, candidate: Candidate, database_size: int) -> range:
-        """Frames within +-refine_radius of the match that belong to the sequence's database."""
-        r, match = self.params.refine_radius, candidate.match_index
+    def _window(self, match: int, database_size: int) -> range:
+        """Frames within +-refine_radius of `match` that belong to the sequence's database."""
+        r = self.params.refine_radius
         return range(max(0, match - r), min(max(database_size, match + 1), match + r + 1))
 
     def _verdicts(
