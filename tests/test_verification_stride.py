@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections import Counter
 from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -18,7 +19,7 @@ from hypothesis import strategies as st
 
 from doseqslam_logs.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.annotated import read_annotations
-from doseqslam_logs.detector.events import Candidate, SequenceDecision
+from doseqslam_logs.detector.events import Alternative, Candidate, SequenceDecision
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.export.loops import loops_summary
 from doseqslam_logs.frame_reader import FolderFrameReader, LogFrameReader
@@ -163,6 +164,35 @@ def test_two_hopeless_checks_give_the_sequence_up() -> None:
         [decision(6, 500_000_000, 6)], lambda: nullcontext(blank), DEFAULT_VERIFICATION
     )
     assert all(check.verdict.reason == "too few features" for check in at_2_hz[0].checks)
+
+
+def test_alternatives_are_tried_in_order_and_given_up_after_two_hopeless_checks() -> None:
+    """Blank frames: every check is hopeless. At 2 Hz (s = 1) each of the 4 candidates checks
+    its own window; alternative 1 (matches 60, 61, ...) is checked for the first two only, then
+    given up; alternative 2 (matches 0, 1, ...) likewise. Window frames seen once per query."""
+    read: list[int] = []
+
+    def blank(indices):
+        read.extend(indices)
+        return ((i, np.zeros((48, 64), np.uint8)) for i in indices)
+
+    base = decision(4, 500_000_000, 4)  # matches 10..13, database 0..89
+    alternatives = (
+        Alternative(60, 1.0, 1.5, tuple(range(60, 64))),
+        Alternative(0, 1.0, 1.6, tuple(range(0, 4))),
+    )
+    params = DEFAULT_VERIFICATION.replace(refine_radius=2)
+    [verified], stats = verify_in_threads(
+        [replace(base, alternatives=alternatives)], lambda: nullcontext(blank), params
+    )
+    assert [check.proposal for check in verified.checks] == [0, 0, 0, 0]
+    assert not any(check.accepted for check in verified.checks)
+    # Own windows: 5 frames each (8..12, 9..13, ...); alternative 1: 58..62 and 59..63 (q0, q1);
+    # alternative 2: 0..2 and 0..3 (q0, q1, clipped at the database start); q2, q3: none.
+    assert stats.pairs == 4 * 5 + 2 * 5 + (3 + 4)
+    assert not {64, 65} & set(read)  # alternative 1's frames for q2, q3 were never read
+    [plain], plain_stats = verify_in_threads([base], lambda: nullcontext(blank), params)
+    assert plain_stats.pairs == 4 * 5 and plain.checks == verified.checks
 
 
 def test_threads_give_the_same_checks(shared_data) -> None:

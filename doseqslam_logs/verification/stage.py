@@ -14,7 +14,10 @@ trajectories of the sequence (`SequenceDecision.alternatives`), the same query i
 against each of them in turn, at the match that trajectory gives it, +- r: the first that
 passes is kept (`PairCheck.proposal` says which). A wrong trajectory is the detector's usual
 failure on a revisit (a similar stretch scores a little lower than the true one), and the check
-tells them apart. Rejected pairs are kept with their verdict.
+tells them apart. An alternative that is hopeless (under half of min_inliers) for two queries in
+a row is not tried again in that sequence, the rule of high frame rates below: on Lip6 Outdoor
+it checked 43 % fewer frame pairs for 4 fewer true pairs (278 of 282), and on the tuning sets
+the same figures or one pair better (docs/results.md). Rejected pairs are kept with their verdict.
 
 High frame rates (`query_stride` > 1: more than one frame per `query_interval_s`): neighbouring
 frames are near copies, and checking each of them against 2r + 1 frames would cost more than
@@ -224,6 +227,7 @@ class Verifier:
         checks: list[PairCheck] = []
         previous: PairCheck | None = None  # the last check of this sequence (stride > 1)
         hopeless_run = 0  # hopeless checks in a row (stride > 1)
+        alternative_runs = [0] * len(decision.alternatives)  # the same, per alternative
         for z, candidate in enumerate(decision.candidates):
             if z % stride:
                 checks.append(PairCheck(candidate, candidate.match_index, self._skipped()))
@@ -237,7 +241,7 @@ class Verifier:
                 candidate, decision.database_size, stride, previous, features, seen
             )
             if stride == 1 and not previous.accepted:
-                previous = self._try_alternatives(decision, z, previous, seen)
+                previous = self._try_alternatives(decision, z, previous, seen, alternative_runs)
             checks.append(previous)
             hopeless = stride > 1 and self._hopeless(previous.verdict)
             hopeless_run = hopeless_run + 1 if hopeless else 0
@@ -294,19 +298,29 @@ class Verifier:
         return PairCheck(candidate, refined, verdict)
 
     def _try_alternatives(
-        self, decision: SequenceDecision, z: int, rejected: PairCheck, seen: dict[int, Verdict]
+        self,
+        decision: SequenceDecision,
+        z: int,
+        rejected: PairCheck,
+        seen: dict[int, Verdict],
+        hopeless_runs: list[int],
     ) -> PairCheck:
         """Candidate z checked at each next-best trajectory's match (+- r) in turn: the first
-        that passes, else the rejected check of the detector's own match."""
+        that passes, else the rejected check of the detector's own match. `hopeless_runs`
+        counts each alternative's hopeless checks in a row; at GIVE_UP_AFTER it is skipped."""
         query_index = rejected.candidate.query_index
         query: FrameFeatures | None = None
         for number, alternative in enumerate(decision.alternatives, start=1):
+            if hopeless_runs[number - 1] >= GIVE_UP_AFTER:
+                continue
             match = alternative.match_indices[z]
             window = self._window(match, decision.database_size)
             if query is None:
                 query = self._features([query_index])[query_index]
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
+            hopeless = self._hopeless(verdict)
+            hopeless_runs[number - 1] = hopeless_runs[number - 1] + 1 if hopeless else 0
             if verdict.accepted:
                 return PairCheck(rejected.candidate, refined, verdict, proposal=number)
         return rejected
