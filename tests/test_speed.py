@@ -30,14 +30,16 @@ def naive_sums(queries: np.ndarray, database: np.ndarray) -> np.ndarray:
     return np.abs(queries[:, None, :].astype(np.int64) - database[None, :, :]).sum(axis=2)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(
-    st.integers(1, 5),  # query rows
+    st.integers(1, 40),  # query rows
     st.integers(0, 150),  # database frames
-    st.integers(1, 70),  # frames per store block: slices end inside and at block ends
+    st.integers(1, 70),  # frames per store block: chunks end inside and at block ends
+    st.integers(1, 33),  # queries per group: groups end inside and at the last query
+    st.integers(1, 80),  # database frames per kernel call
     st.integers(0, 2**32 - 1),
 )
-def test_sad_kernel_equals_the_naive_sums(rows, frames, block, seed) -> None:
+def test_sad_kernel_equals_the_naive_sums(rows, frames, block, group, chunk, seed) -> None:
     rng = np.random.default_rng(seed)
     # Few distinct vectors: many equal distances, which the kernel's sort must not mix up.
     palette = rng.integers(0, 256, (4, 24), dtype=np.uint8)
@@ -45,7 +47,9 @@ def test_sad_kernel_equals_the_naive_sums(rows, frames, block, seed) -> None:
     database[:, 0] = rng.integers(0, 256, frames)  # and some distinct ones
     queries = rng.integers(0, 256, (rows, 24), dtype=np.uint8)
     blocks = [database[s : s + block] for s in range(0, frames, block)]
-    np.testing.assert_array_equal(sad_sums_uint8(queries, blocks), naive_sums(queries, database))
+    sums = sad_sums_uint8(queries, blocks, group, chunk)
+    np.testing.assert_array_equal(sums, naive_sums(queries, database))
+    np.testing.assert_array_equal(sad_sums_uint8(queries, blocks), sums)  # the defaults
 
 
 def test_sad_rows_uint8_of_real_sized_vectors() -> None:

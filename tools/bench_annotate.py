@@ -113,10 +113,13 @@ def measure_annotate(
     extra: dict[str, Any] = {}
     params = Parameters()
     if verify:  # what the annotate command does by default
-        from doseqslam_logs.verification import DEFAULT_VERIFICATION, verified_detector_parameters
+        from doseqslam_logs import verification
 
-        extra["verification"] = DEFAULT_VERIFICATION
-        params = verified_detector_parameters()
+        extra["verification"] = verification.DEFAULT_VERIFICATION
+        if hasattr(verification, "verified_detector_parameters"):
+            params = verification.verified_detector_parameters()
+        else:  # a --compare package from before next-best trajectories
+            params = Parameters(threshold=verification.VERIFIED_THRESHOLD)
     options = AnnotateOptions(topic=topic, end_ns=end_ns, sidecar=sidecar, **extra)
     start = time.perf_counter()
     result = annotate_log(log, out, params, options)
