@@ -24,10 +24,13 @@ Precision = Literal["uint8", "float32"]
 
 QUANTIZATION_SCALE = 16.0
 QUANTIZATION_ZERO = 128
-# The uint8 kernel compares groups of this many queries (64 KB, kept in the CPU's cache) with
-# this many database frames per call (`sad_sums_uint8`).
+# The uint8 kernel's two layouts (`sad_sums_uint8`): up to SHORT_QUERIES queries, groups of
+# QUERY_GROUP of them (64 KB, kept in the CPU's cache) against DATABASE_CHUNK frames per call;
+# more queries, all of them against SLICE_FRAMES frames (a 64 KB slice) per call.
+SHORT_QUERIES = 48
 QUERY_GROUP = 32
 DATABASE_CHUNK = 1024
+SLICE_FRAMES = 32
 
 
 def quantize(vector: FloatArray) -> npt.NDArray[np.uint8]:
@@ -121,15 +124,24 @@ def sad_sums_uint8(
     """Integer sums of absolute differences, queries x every frame of the blocks in order.
 
     `cv2.batchDistance(NORM_L1)` computes them with OpenCV's SIMD L1 kernel, but its Python
-    binding refuses K = 0 ("every distance, no neighbour indices"). So the database frames are
-    the kernel's rows and a group of at most `group` queries its columns, with K = the group's
-    size: each database frame gets the distance to every query of the group, sorted, with the
-    query's index, and scattering them back by index gives the plain sums. The group (64 KB
-    for 32 queries) stays in the CPU's cache while `chunk` database frames stream past it
-    once; sorting 32 distances costs little next to 32 x 2048-byte differences. Against the
-    former layout (queries as rows, 32-frame database slices) this takes 2-3x less CPU for
-    the short sequences of a 10 Hz log and the same for long ones (tools/bench_sad.py).
+    binding refuses K = 0 ("every distance, no neighbour indices"). With K = the number of
+    columns it returns every distance of each row, sorted, with the column of each: scattering
+    them back by index gives the plain sums. Up to `SHORT_QUERIES` queries, the database frames
+    are the rows and the queries (one group of at most `group`, in cache) the columns, `chunk`
+    frames per call; longer sequences take the queries as rows and `SLICE_FRAMES`-frame slices
+    of the database as columns, so the database streams past once for all of them. Measured
+    side by side on 36,000 frames, the first layout against the second: half the CPU at 10
+    queries, 12-26 % less at 29 (the hour's mean sequence), the same at 60, more from about
+    100 (it streams the database once per group); docs/performance.md.
     """
+    if len(queries) <= SHORT_QUERIES:
+        return _sums_database_rows(queries, blocks, group, chunk)
+    return _sums_query_rows(queries, blocks)
+
+
+def _sums_database_rows(
+    queries: npt.NDArray[np.uint8], blocks: list[npt.NDArray[np.generic]], group: int, chunk: int
+) -> npt.NDArray[np.int32]:
     n = sum(len(block) for block in blocks)
     sums = np.empty((n, len(queries)), np.int32)
     for first_query in range(0, len(queries), group):
@@ -147,3 +159,25 @@ def sad_sums_uint8(
                 np.put_along_axis(sums[start:stop, columns], order, dist, axis=1)
                 start = stop
     return np.ascontiguousarray(sums.T)
+
+
+def _sums_query_rows(
+    queries: npt.NDArray[np.uint8], blocks: list[npt.NDArray[np.generic]]
+) -> npt.NDArray[np.int32]:
+    n = sum(len(block) for block in blocks)
+    distances = np.empty((len(queries), n), np.int32)
+    columns = np.empty((len(queries), n), np.int32)
+    start = 0
+    for block in blocks:
+        for first in range(0, len(block), SLICE_FRAMES):
+            part = np.asarray(block[first : first + SLICE_FRAMES], dtype=np.uint8)
+            stop = start + len(part)
+            dist, index = cv2.batchDistance(
+                queries, part, cv2.CV_32S, normType=cv2.NORM_L1, K=len(part)
+            )
+            distances[:, start:stop] = dist
+            columns[:, start:stop] = index + start
+            start = stop
+    sums = np.empty((len(queries), n), np.int32)
+    np.put_along_axis(sums, columns, distances, axis=1)
+    return sums
