@@ -186,11 +186,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, default=36_000)
     parser.add_argument("--repeat", type=int, default=2, help="best of this many runs")
+    parser.add_argument(
+        "--rows", type=int, default=SEQUENCE, help="query rows (a sequence's length)"
+    )
     args = parser.parse_args()
     db = database(args.frames)
-    queries = db[1000 : 1000 + SEQUENCE].copy()
+    queries = db[1000 : 1000 + args.rows].copy()
     print(
-        f"{SEQUENCE} query rows x {args.frames:,} frames x {DIMENSION} bytes; load average "
+        f"{args.rows} query rows x {args.frames:,} frames x {DIMENSION} bytes; load average "
         f"{os.getloadavg()[0]:.1f}\n"
     )
     print("| kernel | wall ms per row | CPU ms per row | rows identical |")
@@ -207,8 +210,8 @@ def main() -> None:
             query_rows_slices,
         ),
         (
-            "`difference.sad_rows` (at most 48 queries): `cv2.batchDistance(NORM_L1, "
-            "K=group)`, each 1024-frame chunk x groups of 32 queries, scattered back by index",
+            "`difference.sad_rows`: up to 48 queries `cv2.batchDistance(NORM_L1, K=group)`, "
+            "each 1024-frame chunk x groups of 32 queries; above, the kernel before",
             library_kernel(db),
         ),
     ]
