@@ -130,6 +130,7 @@ def summary_line(result: AnnotateResult) -> str:
         notes.insert(
             0,
             f"verified {stats.candidates} candidate pairs: {stats.accepted} accepted"
+            f"{stats.alternatives_note}"
             f"{f', {stats.skipped} skipped (high frame rate)' if stats.skipped else ''} "
             f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
             f"{verification.wall_s:.1f} s; "

@@ -145,8 +145,9 @@ class _FolderVerification:
         )
         return (
             f"verification {self.params.hash}: {stats.candidates} candidate pairs verified, "
-            f"{stats.accepted} accepted ({stats.pairs} frame pairs checked, "
-            f"{stats.ms_per_pair:.1f} ms each, {self.wall_s:.1f} s; {pose})"
+            f"{stats.accepted} accepted{stats.alternatives_note} "
+            f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
+            f"{self.wall_s:.1f} s; {pose})"
         )
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -159,6 +160,7 @@ class _FolderVerification:
             "verification_cost": {
                 "candidate_pairs": stats.candidates,
                 "accepted_pairs": stats.accepted,
+                "accepted_on_alternatives": stats.from_alternatives,
                 "frame_pairs_checked": stats.pairs,
                 "ms_per_pair": round(stats.ms_per_pair, 3),
                 "wall_time_s": round(self.wall_s, 3),
