@@ -8,11 +8,12 @@ import numpy as np
 import numpy.typing as npt
 
 from .doseqslam import DOSeqSLAM, PreparedFrame
-from .events import Candidate, SequenceDecision
+from .events import Alternative, Candidate, SequenceDecision
 from .params import Parameters
 from .seqslam import SeqSLAM
 
 __all__ = [
+    "Alternative",
     "Candidate",
     "DOSeqSLAM",
     "Detector",
