@@ -13,6 +13,7 @@ kernel side by side).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Literal
 
 import cv2
@@ -139,6 +140,19 @@ def sad_sums_uint8(
     return _sums_query_rows(queries, blocks)
 
 
+def _slices(
+    blocks: list[npt.NDArray[np.generic]], frames: int
+) -> Iterator[tuple[int, npt.NDArray[np.uint8]]]:
+    """The database in order, at most `frames` frames at a time (never across a block's end),
+    each slice with the index of its first frame."""
+    start = 0
+    for block in blocks:
+        for first in range(0, len(block), frames):
+            part = np.asarray(block[first : first + frames], dtype=np.uint8)
+            yield start, part
+            start += len(part)
+
+
 def _sums_database_rows(
     queries: npt.NDArray[np.uint8], blocks: list[npt.NDArray[np.generic]], group: int, chunk: int
 ) -> npt.NDArray[np.int32]:
@@ -147,17 +161,12 @@ def _sums_database_rows(
     for first_query in range(0, len(queries), group):
         members = np.ascontiguousarray(queries[first_query : first_query + group])
         columns = slice(first_query, first_query + len(members))
-        start = 0
-        for block in blocks:
-            for first in range(0, len(block), chunk):
-                part = np.asarray(block[first : first + chunk], dtype=np.uint8)
-                stop = start + len(part)
-                dist, index = cv2.batchDistance(
-                    part, members, cv2.CV_32S, normType=cv2.NORM_L1, K=len(members)
-                )
-                order = np.asarray(index, dtype=np.intp)
-                np.put_along_axis(sums[start:stop, columns], order, dist, axis=1)
-                start = stop
+        for start, part in _slices(blocks, chunk):
+            dist, index = cv2.batchDistance(
+                part, members, cv2.CV_32S, normType=cv2.NORM_L1, K=len(members)
+            )
+            order = np.asarray(index, dtype=np.intp)
+            np.put_along_axis(sums[start : start + len(part), columns], order, dist, axis=1)
     return np.ascontiguousarray(sums.T)
 
 
@@ -167,17 +176,13 @@ def _sums_query_rows(
     n = sum(len(block) for block in blocks)
     distances = np.empty((len(queries), n), np.int32)
     columns = np.empty((len(queries), n), np.int32)
-    start = 0
-    for block in blocks:
-        for first in range(0, len(block), SLICE_FRAMES):
-            part = np.asarray(block[first : first + SLICE_FRAMES], dtype=np.uint8)
-            stop = start + len(part)
-            dist, index = cv2.batchDistance(
-                queries, part, cv2.CV_32S, normType=cv2.NORM_L1, K=len(part)
-            )
-            distances[:, start:stop] = dist
-            columns[:, start:stop] = index + start
-            start = stop
+    for start, part in _slices(blocks, SLICE_FRAMES):
+        stop = start + len(part)
+        dist, index = cv2.batchDistance(
+            queries, part, cv2.CV_32S, normType=cv2.NORM_L1, K=len(part)
+        )
+        distances[:, start:stop] = dist
+        columns[:, start:stop] = index + start
     sums = np.empty((len(queries), n), np.int32)
     np.put_along_axis(sums, columns, distances, axis=1)
     return sums
