@@ -246,8 +246,11 @@ class Verifier:
             previous = self._check(
                 candidate, decision.database_size, stride, previous, features, seen
             )
-            if stride == 1 and not previous.accepted:
-                previous = self._try_alternatives(decision, z, previous, seen, alternative_runs)
+            if stride == 1 and not previous.accepted:  # the query's features: read above
+                query = features[candidate.query_index]
+                previous = self._try_alternatives(
+                    decision, z, previous, query, seen, alternative_runs
+                )
             checks.append(previous)
             hopeless = stride > 1 and self._hopeless(previous.verdict)
             hopeless_run = hopeless_run + 1 if hopeless else 0
@@ -308,21 +311,18 @@ class Verifier:
         decision: SequenceDecision,
         z: int,
         rejected: PairCheck,
+        query: FrameFeatures,
         seen: dict[int, Verdict],
         hopeless_runs: list[int],
     ) -> PairCheck:
         """Candidate z checked at each next-best trajectory's match (+- r) in turn: the first
         that passes, else the rejected check of the detector's own match. `hopeless_runs`
         counts each alternative's hopeless checks in a row; at GIVE_UP_AFTER it is skipped."""
-        query_index = rejected.candidate.query_index
-        query: FrameFeatures | None = None
         for number, alternative in enumerate(decision.alternatives, start=1):
             if hopeless_runs[number - 1] >= GIVE_UP_AFTER:
                 continue
             match = alternative.match_indices[z]
             window = self._window(match, decision.database_size)
-            if query is None:
-                query = self._features([query_index])[query_index]
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
             hopeless = self._hopeless(verdict)
