@@ -1,4 +1,5 @@
-"""The camera intrinsics a log records: the first sensor_msgs/CameraInfo of the camera.
+"""The camera intrinsics a log records: the first CameraInfo of the camera
+(sensor_msgs/CameraInfo, or Foxglove's CameraCalibration, which has the same K, width, height).
 
 Geometric verification fits an essential matrix (and recovers the relative pose) when the
 intrinsics are known. The CameraInfo topic chosen is the one sharing the longest topic prefix
@@ -19,7 +20,12 @@ from ..errors import SourceError
 from .base import MCAP_MAGIC
 from .mcap_source import DESERIALIZERS
 
-CAMERA_INFO_TYPES = ("sensor_msgs/msg/CameraInfo", "sensor_msgs/CameraInfo")
+CAMERA_INFO_TYPES = (
+    "sensor_msgs/msg/CameraInfo",
+    "sensor_msgs/CameraInfo",
+    "foxglove.CameraCalibration",
+    "foxglove_msgs/msg/CameraCalibration",
+)
 
 
 @dataclass(frozen=True)
