@@ -35,7 +35,7 @@ gtsam = pytest.importorskip("gtsam")
 REPO = Path(__file__).resolve().parents[1]
 DRIVE_LOOPS = REPO / "sample_logs" / "drive_loops.ros2.mcap"
 
-# Measured (docs/export.md): 1.071 m -> 0.271 m (x3.95) on the seed-29 drive; 0.329 -> 0.337 m
+# Measured (docs/export.md): 1.071 m -> 0.158 m (x6.78) on the seed-29 drive; 0.329 -> 0.343 m
 # on drive_loops. The bounds leave room for other GTSAM and OpenCV versions.
 MIN_IMPROVEMENT_DRIFTING = 2.5
 MAX_WORSENING_LOW_DRIFT = 1.15

@@ -372,8 +372,9 @@ def test_relative_pose_from_the_essential_matrix() -> None:
     second = _render(true_rotation, true_translation)
     intrinsics = Intrinsics(FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2)
     query, match = extract_features(first, P), extract_features(second, P)
+    params = P.replace(max_rotation_deg=30.0)  # the default limit (10 deg) is at the edge here
 
-    verdict = verify_pair(query, match, P, intrinsics)
+    verdict = verify_pair(query, match, params, intrinsics)
 
     assert verdict.accepted and verdict.model == "E"
     assert verdict.rotation_deg == pytest.approx(10.0, abs=1.5)
@@ -389,6 +390,10 @@ def test_relative_pose_from_the_essential_matrix() -> None:
     # Without intrinsics the same pair is checked with F and carries no pose.
     plain = verify_pair(query, match, P)
     assert plain.accepted and plain.model == "F" and plain.rotation_deg is None
+    # Over the rotation limit: rejected, the fit's inliers and pose kept (for bracketing).
+    limited = verify_pair(query, match, P.replace(max_rotation_deg=5.0), intrinsics)
+    assert not limited.accepted and limited.reason == "rotation over 5 deg"
+    assert limited.inliers == verdict.inliers and limited.rotation_deg == verdict.rotation_deg
 
 
 # -- parameters ---------------------------------------------------------------------------

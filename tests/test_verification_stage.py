@@ -88,15 +88,15 @@ def test_relative_rotation_matches_the_ground_truth_poses(verified_log) -> None:
 
 
 def test_verified_pairs_are_true_places_on_the_sample(verified_log) -> None:
-    """Measured: 80 of 83 verified pairs are GT loop events (2 m, 20 deg); the 3 others are
-    the same place one frame past the GT boundary (docs/results.md)."""
+    """Measured: all 50 verified pairs are GT loop events (2 m, 20 deg); before bracketing and
+    the rotation limit, 3 of 97 were the same place one frame past the GT boundary
+    (docs/results.md)."""
     gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
     reported = read_annotations(verified_log).reported_loop_closures
     q = np.array([lc["query_index"] for lc in reported])
     m = np.array([lc["refined_match_index"] for lc in reported])
     true = gt.are_true(q, m, 0)
-    assert true.sum() >= 75 and (~true).sum() <= 3
-    assert gt.are_true(q[~true], m[~true], 1).all()  # within one frame of a GT cell
+    assert true.sum() >= 45 and (~true).sum() == 0
 
 
 def test_no_verify_is_the_papers_decision(tmp_path) -> None:
@@ -128,11 +128,17 @@ def test_intrinsics_option_is_checked(tmp_path, capsys) -> None:
 
 
 def test_camera_info_is_found_in_every_container() -> None:
-    for name in ("drive_loops.ros2.mcap", "drive_loops.bag", "drive_loops.rosbag2"):
+    """sensor_msgs/CameraInfo in the ROS containers, foxglove.CameraCalibration (protobuf) in
+    the Foxglove MCAP: the same intrinsics."""
+    for name in (
+        "drive_loops.ros2.mcap",
+        "drive_loops.bag",
+        "drive_loops.rosbag2",
+        "drive_loops.foxglove.mcap",
+    ):
         info = read_camera_info(SAMPLES / name, "/camera/image/compressed")
         assert info is not None and (info.width, info.height) == (256, 192)
         assert info.cx == 128.0 and info.fx == pytest.approx(182.80294486299067)
-    assert read_camera_info(SAMPLES / "drive_loops.foxglove.mcap", "/camera/image") is None
 
 
 def test_verified_figures_on_rtabmap_reach_the_target(shared_data) -> None:
@@ -151,8 +157,9 @@ def test_verified_figures_on_rtabmap_reach_the_target(shared_data) -> None:
 
 def test_next_best_trajectories_add_true_pairs_and_no_false_one() -> None:
     """drive_loops: the same decisions with and without alternatives (they only add
-    information); verified, the alternatives find 14 more true pairs (94 against 80) and the
-    same 3 false ones."""
+    information); verified, the alternatives find 6 more true pairs (50 against 44) and no
+    false one (94 against 80, both with 3 false ones, before bracketing and the rotation
+    limit)."""
     stamped, intrinsics = _sample_frames(LOOPS)
     gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
     figures = {}
@@ -168,8 +175,8 @@ def test_next_best_trajectories_add_true_pairs_and_no_false_one() -> None:
     assert [replace(d, alternatives=()) for d in with_alternatives[0]] == plain[0]
     assert all(not d.alternatives for d in plain[0])
     assert any(d.alternatives for d in with_alternatives[0])
-    assert with_alternatives[1].tp >= plain[1].tp + 10
-    assert with_alternatives[1].fp == plain[1].fp
+    assert with_alternatives[1].tp >= plain[1].tp + 5
+    assert with_alternatives[1].fp == plain[1].fp == 0
     for item in with_alternatives[2]:  # each accepted pair lies on the trajectory it names
         for z, check in enumerate(item.checks):
             if check.proposal:

@@ -108,7 +108,7 @@ def test_one_candidate_in_s_is_checked_and_the_others_are_not_reported(strided_l
                 assert lc["verification"] in ("accepted", "rejected") and lc["inliers"] >= 0
     assert skipped > 50
     assert all(lc["verification"] == "accepted" for lc in log.reported_loop_closures)
-    assert len(log.reported_loop_closures) >= 15
+    assert len(log.reported_loop_closures) >= 10
     summary = loops_summary(log, len(log.reported_loop_closures), include_rejected=False)
     assert f"{skipped} not checked (high frame rate)" in summary
 
@@ -118,7 +118,9 @@ def test_strided_acceptances_are_true_places(strided_log) -> None:
     reported = read_annotations(strided_log).reported_loop_closures
     q = np.array([lc["query_index"] for lc in reported])
     m = np.array([lc["refined_match_index"] for lc in reported])
-    assert gt.are_true(q, m, 1).mean() >= 0.9  # within a frame of a GT cell (2 m, 20 deg)
+    # Measured: 12 of 12 GT cells (2 m, 20 deg); 18 of 21 before bracketing and the rotation
+    # limit, which also apply to the coarse-to-fine search.
+    assert len(q) >= 10 and gt.are_true(q, m, 0).all()
 
 
 def test_strided_search_checks_far_fewer_pairs_than_the_exhaustive_one(tmp_path) -> None:

@@ -102,6 +102,9 @@ def verification_from_args(args: argparse.Namespace) -> VerificationParameters |
 
 
 def _plain_value(text: str) -> object:
+    """An int, a float, true/false (TOML's spelling, as --set), else the text."""
+    if text in ("true", "false"):
+        return text == "true"
     for kind in (int, float):
         try:
             return kind(text)

@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..detector.events import Candidate, SequenceDecision
+from ..verification.geometry import Verdict
 from ..verification.stage import PairCheck, VerifiedDecision
 
 # sequence id -> its verification; None for a run without verification (--no-verify).
@@ -202,8 +203,16 @@ def _verification_fields(
         "verification_model": _MODEL_NAMES[verdict.model],
         "rejection_reason": "" if verdict.accepted else verdict.reason,
         **frame,
-        **_pose_fields(verdict.rotation_xyzw, verdict.rotation_deg, verdict.translation_direction),
+        **_pose_fields(*_accepted_pose(verdict)),
     }
+
+
+def _accepted_pose(verdict: Verdict) -> tuple[Any, Any, Any]:
+    """The relative pose of an accepted pair only: a pair rejected after its fit (rotation
+    limit, bracketing) says why in its reason, not with a pose a consumer might use."""
+    if not verdict.accepted:
+        return None, None, None
+    return verdict.rotation_xyzw, verdict.rotation_deg, verdict.translation_direction
 
 
 def _proposal_fields(decision: SequenceDecision, z: int, check: PairCheck | None) -> dict[str, Any]:

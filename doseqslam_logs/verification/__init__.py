@@ -1,17 +1,21 @@
 """Geometric verification of loop-closure pairs (issue #5): pure computation, no file I/O.
 
 After the detector, each (query, match) pair is checked with local features, a ratio test and
-a robust fundamental-matrix fit (essential matrix and relative pose when intrinsics are known).
+a robust fundamental-matrix fit (essential matrix and relative pose when intrinsics are known;
+then also a rotation limit and bracketing of the refined match: `bracketed_match`).
 """
 
 from __future__ import annotations
 
 from .geometry import (
+    NOT_BRACKETED,
     FrameFeatures,
     Intrinsics,
     Verdict,
     best_verdict,
+    bracketed_match,
     extract_features,
+    match_camera_direction,
     refine_match,
     verify_pair,
 )
@@ -26,6 +30,7 @@ from .stage import PairCheck, VerificationStats, VerifiedDecision, Verifier
 
 __all__ = [
     "DEFAULT_VERIFICATION",
+    "NOT_BRACKETED",
     "VERIFIED_ALTERNATIVES",
     "VERIFIED_THRESHOLD",
     "FrameFeatures",
@@ -37,7 +42,9 @@ __all__ = [
     "VerifiedDecision",
     "Verifier",
     "best_verdict",
+    "bracketed_match",
     "extract_features",
+    "match_camera_direction",
     "refine_match",
     "verified_detector_parameters",
     "verify_pair",

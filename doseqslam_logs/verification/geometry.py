@@ -16,6 +16,7 @@ drawing from it would stay deterministic; callers relying on cv::theRNG() should
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,6 +43,8 @@ _FACTORIES = {
 }
 _FIT_SEED = 0
 _DESCRIPTOR_BYTES = {"sift": 128, "orb": 32, "akaze": 61, "brisk": 64}
+# The reason of a refined match rejected by `bracketed_match`.
+NOT_BRACKETED = "not bracketed"
 
 
 @dataclass(frozen=True)
@@ -98,7 +101,8 @@ class Verdict:
     fitted; for "E" the RANSAC inliers, before recoverPose's chirality check); `matches_tested`
     the ratio-test matches given to the robust fit (0 when a frame had too few features).
 
-    The pose fields are set only when intrinsics were given and the pair was accepted:
+    The pose fields are set only when intrinsics were given and the fit reached min_inliers
+    (a pair rejected afterwards, by max_rotation_deg or bracketing, keeps them):
     `rotation_xyzw` is the unit quaternion (x, y, z, w) of R and `translation_direction` the
     unit vector t, with X_match = R X_query + t for a 3-D point X in each camera's frame
     (cv2.recoverPose with the query as the first view); `rotation_deg` is the angle of R.
@@ -108,7 +112,9 @@ class Verdict:
     inliers: int
     matches_tested: int
     model: Model
-    reason: str  # "accepted", "too few features", "too few matches", "no model", "too few inliers"
+    # "accepted", "too few features", "too few matches", "no model", "too few inliers",
+    # "rotation over N deg", NOT_BRACKETED
+    reason: str
     rotation_xyzw: tuple[float, float, float, float] | None = None
     rotation_deg: float | None = None
     translation_direction: tuple[float, float, float] | None = None
@@ -207,17 +213,84 @@ def refine_match(
 def best_verdict(
     verdicts: Sequence[tuple[int, Verdict]], original: int | None = None
 ) -> tuple[int, Verdict]:
-    """The (frame index, verdict) with the most inliers; ties: `original`, then the lower index.
+    """The accepted (frame index, verdict) with the most inliers, else the rejected one with the
+    most; ties: `original`, then the lower index.
 
     Inliers rank the frames whether or not they reach `min_inliers`, so the choice of frame
-    does not depend on the acceptance threshold.
+    does not depend on the acceptance threshold; accepted frames come first because a fit with
+    many inliers can still be rejected (its rotation over `max_rotation_deg`).
 
     Raises:
         ValueError: `verdicts` is empty.
     """
     if not verdicts:
         raise ValueError("refine_match needs at least one candidate frame")
-    return min(verdicts, key=lambda item: (-item[1].inliers, item[0] != original, item[0]))
+    return min(
+        verdicts,
+        key=lambda item: (not item[1].accepted, -item[1].inliers, item[0] != original, item[0]),
+    )
+
+
+def match_camera_direction(verdict: Verdict) -> npt.NDArray[np.float64] | None:
+    """Unit direction of the match camera's centre in the query camera's frame (-R^T t):
+    z > 0 when the match frame was taken ahead of the query along its optical axis. None
+    without a relative pose."""
+    if verdict.rotation_xyzw is None or verdict.translation_direction is None:
+        return None
+    x, y, z, w = verdict.rotation_xyzw
+    rotation = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    direction: npt.NDArray[np.float64] = -rotation.T @ np.asarray(verdict.translation_direction)
+    return direction
+
+
+def bracketed_match(
+    verdicts: Sequence[tuple[int, Verdict]], refined: int, verdict: Verdict
+) -> tuple[int, Verdict]:
+    """The frame nearest the query among the verified frames around `refined`, or `refined`
+    rejected (NOT_BRACKETED) when the query's position does not lie between two of them.
+
+    `verdicts` are the checked frames of one window; the run is the frames next to `refined`
+    (in frame order) that passed with a relative pose. Along a trajectory driven the same way
+    as the query, the match camera is behind the query (z < 0, `match_camera_direction`) before
+    the nearest point and ahead after it: a sign change between neighbours of the run brackets
+    the query, and the one of the two with the smaller |z| is the nearer (among several sign
+    changes, the pair with the most inliers). Without one, every verified frame is on one side:
+    the views overlap, but the camera was not where the query was (e.g. the same facades seen
+    from several metres further on). Accepted verdicts without a pose (fundamental matrix)
+    are returned unchanged. Assumes a forward-looking camera.
+    """
+    direction = match_camera_direction(verdict)
+    if not verdict.accepted or direction is None:
+        return refined, verdict
+    ordered = sorted(verdicts, key=lambda item: item[0])
+    at = next(i for i, (frame, _) in enumerate(ordered) if frame == refined)
+    first, last = at, at
+    while first > 0 and _has_pose(ordered[first - 1][1]):
+        first -= 1
+    while last + 1 < len(ordered) and _has_pose(ordered[last + 1][1]):
+        last += 1
+    run = ordered[first : last + 1]
+    ahead = [_ahead(v) for _, v in run]
+    changes = [i for i in range(len(run) - 1) if ahead[i] < 0 <= ahead[i + 1]]
+    if not changes:
+        return refined, dataclasses.replace(verdict, accepted=False, reason=NOT_BRACKETED)
+    i = max(changes, key=lambda k: run[k][1].inliers + run[k + 1][1].inliers)
+    return run[i] if abs(ahead[i]) < abs(ahead[i + 1]) else run[i + 1]
+
+
+def _has_pose(verdict: Verdict) -> bool:
+    return verdict.accepted and verdict.translation_direction is not None
+
+
+def _ahead(verdict: Verdict) -> float:
+    direction = match_camera_direction(verdict)
+    return 0.0 if direction is None else float(direction[2])
 
 
 # -- features -----------------------------------------------------------------------------
@@ -317,7 +390,11 @@ def _essential_verdict(
     verdict = _verdict(int(np.count_nonzero(mask)), tested, "E", params)
     if not verdict.accepted:
         return verdict
-    return _with_pose(verdict, np.asarray(essential[:3], np.float64), p_query, p_match, k, mask)
+    posed = _with_pose(verdict, np.asarray(essential[:3], np.float64), p_query, p_match, k, mask)
+    if posed.rotation_deg is not None and posed.rotation_deg > params.max_rotation_deg:
+        reason = f"rotation over {params.max_rotation_deg:g} deg"
+        return dataclasses.replace(posed, accepted=False, reason=reason)
+    return posed
 
 
 def _with_pose(

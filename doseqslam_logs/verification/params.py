@@ -55,6 +55,13 @@ class VerificationParameters:
     # checked, windows are searched coarse to fine and accepted offsets tracked
     # (verification.stage); at 2 Hz or slower every candidate is (0: always).
     query_interval_s: float = 0.5
+    # With intrinsics (essential matrix) only, both chosen on our sample logs (docs/results.md,
+    # "Our sample logs: same place, same heading"): a pair whose relative rotation exceeds
+    # max_rotation_deg is rejected (180: no limit), and with `bracket` a refined match is kept
+    # only where the query's position lies between two verified frames of the match's
+    # trajectory (geometry.bracketed_match); the refined match is then the nearer of those two.
+    max_rotation_deg: float = 10.0
+    bracket: bool = True
 
     def __post_init__(self) -> None:
         for name, allowed in _CHOICES.items():
@@ -79,6 +86,10 @@ class VerificationParameters:
             )
         if self.refine_radius < 0:
             raise ParameterError(f"refine_radius must be >= 0, got {self.refine_radius}")
+        if not 0 < self.max_rotation_deg <= 180:
+            raise ParameterError(
+                f"max_rotation_deg must be in (0, 180], got {self.max_rotation_deg}"
+            )
         if not self.query_interval_s >= 0:
             raise ParameterError(f"query_interval_s must be >= 0, got {self.query_interval_s}")
 
@@ -99,8 +110,11 @@ class VerificationParameters:
         converted: dict[str, Any] = {}
         for name, value in values.items():
             default = known[name]
-            # bool is an int subclass: True must not pass for a count.
-            ok = not isinstance(value, bool) and isinstance(value, _accepted_types(default))
+            # bool is an int subclass: True must not pass for a count, nor 1 for a switch.
+            if isinstance(default, bool):
+                ok = isinstance(value, bool)
+            else:
+                ok = not isinstance(value, bool) and isinstance(value, _accepted_types(default))
             if not ok:
                 raise ParameterError(
                     f"verification parameter {name} must be {type(default).__name__}, got {value!r}"

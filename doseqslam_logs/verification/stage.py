@@ -9,15 +9,22 @@ queries, a match window) are loaded in one read.
 
 Each candidate (q, m) is checked against every frame of m +- r inside the sequence's database;
 the frame with the most inliers is the refined match, and the pair is accepted when its inliers
-reach `min_inliers` (`refine_match`). When it fails and the detector recorded next-best
-trajectories of the sequence (`SequenceDecision.alternatives`), the same query is checked
-against each of them in turn, at the match that trajectory gives it, +- r: the first that
-passes is kept (`PairCheck.proposal` says which). A wrong trajectory is the detector's usual
-failure on a revisit (a similar stretch scores a little lower than the true one), and the check
-tells them apart. An alternative that is hopeless (under half of min_inliers) for two queries in
-a row is not tried again in that sequence, the rule of high frame rates below: on Lip6 Outdoor
-it checked 43 % fewer frame pairs for 4 fewer true pairs (278 of 282), and on the tuning sets
-the same figures or one pair better (docs/results.md). Rejected pairs are kept with their verdict.
+reach `min_inliers` (`refine_match`). With intrinsics and `bracket` (the default), the refined
+match must then be bracketed: among the verified frames next to it, the match camera passes
+from behind the query to ahead of it, and the nearer frame of that sign change becomes the
+refined match; else the pair is rejected "not bracketed" (`geometry.bracketed_match`: the
+same facades seen from several metres away overlap, but are not the same place); a pair
+whose relative rotation exceeds `max_rotation_deg` is rejected by the check itself.
+
+When a pair fails and the detector recorded next-best trajectories of the sequence
+(`SequenceDecision.alternatives`), the same query is checked against each of them in turn, at
+the match that trajectory gives it, +- r: the first that passes is kept (`PairCheck.proposal`
+says which). A wrong trajectory is the detector's usual failure on a revisit (a similar stretch
+scores a little lower than the true one), and the check tells them apart. An alternative that
+is hopeless (under half of min_inliers) for two queries in a row is not tried again in that
+sequence, the rule of high frame rates below: on Lip6 Outdoor it checked 43 % fewer frame pairs
+for 4 fewer true pairs (278 of 282), and on the tuning sets the same figures or one pair better
+(docs/results.md). Rejected pairs are kept with their verdict.
 
 High frame rates (`query_stride` > 1: more than one frame per `query_interval_s`): neighbouring
 frames are near copies, and checking each of them against 2r + 1 frames would cost more than
@@ -56,6 +63,7 @@ from .geometry import (
     Intrinsics,
     Verdict,
     best_verdict,
+    bracketed_match,
     extract_features,
     verify_pair,
 )
@@ -287,12 +295,12 @@ class Verifier:
             return best_verdict(list(seen.items()), match)
 
         if stride == 1:
-            return PairCheck(candidate, *best(window))
+            return PairCheck(candidate, *self._bracketed(window, seen, *best(window)))
         if previous is not None:
             offset = previous.refined_match_index - previous.candidate.match_index
             centre = match + offset  # and the grid frames on either side (likely cached)
             tracked = [m for m in range(centre - stride + 1, centre + stride) if m % stride == 0]
-            refined, verdict = best([centre, *tracked])
+            refined, verdict = self._bracketed(window, seen, *best([centre, *tracked]))
             if verdict.accepted or (self._hopeless(verdict) and self._hopeless(previous.verdict)):
                 return PairCheck(candidate, refined, verdict)
         # The grids are fixed in frame indices (not relative to the match), so the next checked
@@ -304,7 +312,7 @@ class Verifier:
                 break
             near = range(refined - reach, refined + reach + 1)
             refined, verdict = best(m for m in near if m % spacing == 0)
-        return PairCheck(candidate, refined, verdict)
+        return PairCheck(candidate, *self._bracketed(window, seen, refined, verdict))
 
     def _try_alternatives(
         self,
@@ -325,11 +333,20 @@ class Verifier:
             window = self._window(match, decision.database_size)
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
+            refined, verdict = self._bracketed(window, seen, refined, verdict)
             hopeless = self._hopeless(verdict)
             hopeless_runs[number - 1] = hopeless_runs[number - 1] + 1 if hopeless else 0
             if verdict.accepted:
                 return PairCheck(rejected.candidate, refined, verdict, proposal=number)
         return rejected
+
+    def _bracketed(
+        self, window: range, seen: dict[int, Verdict], refined: int, verdict: Verdict
+    ) -> tuple[int, Verdict]:
+        """`bracketed_match` over the window's checked frames, when `params.bracket` is on."""
+        if not self.params.bracket:
+            return refined, verdict
+        return bracketed_match([(m, seen[m]) for m in window if m in seen], refined, verdict)
 
     def _hopeless(self, verdict: Verdict) -> bool:
         """Under half of min_inliers: no near copy of this frame is likely to pass."""
