@@ -16,6 +16,7 @@ from .params_args import (
 )
 from .progress import Progress
 from .times import parse_time_ns
+from .verification_summary import verification_summary
 
 
 def positive_int(text: str) -> int:
@@ -127,15 +128,9 @@ def summary_line(result: AnnotateResult) -> str:
     if verification is not None:
         stats = verification.stats
         pose = f"essential matrix, intrinsics from {verification.intrinsics_source}"
-        notes.insert(
-            0,
-            f"verified {stats.candidates} candidate pairs: {stats.accepted} accepted"
-            f"{stats.alternatives_note}"
-            f"{f', {stats.skipped} skipped (high frame rate)' if stats.skipped else ''} "
-            f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
-            f"{verification.wall_s:.1f} s; "
-            f"{pose if verification.intrinsics else 'fundamental matrix, no intrinsics'})",
-        )
+        model = pose if verification.intrinsics else "fundamental matrix, no intrinsics"
+        checked = verification_summary(stats, verification.wall_s, model)
+        notes.insert(0, f"verified {stats.candidates} candidate pairs: {checked}")
     return (
         f"{result.output_path}: {replay.frames} frames of {result.topic}, "
         f"{len(replay.decisions)} sequences, {result.loop_closures} loop closures, "

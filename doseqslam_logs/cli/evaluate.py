@@ -41,6 +41,7 @@ from .params_args import (
     verification_from_args,
 )
 from .progress import Progress
+from .verification_summary import verification_summary
 
 # Threads that verify the candidates (each with its own feature cache); results do not depend
 # on it.
@@ -143,12 +144,9 @@ class _FolderVerification:
             if self.intrinsics
             else "fundamental matrix, no intrinsics"
         )
-        return (
-            f"verification {self.params.hash}: {stats.candidates} candidate pairs verified, "
-            f"{stats.accepted} accepted{stats.alternatives_note} "
-            f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
-            f"{self.wall_s:.1f} s; {pose})"
-        )
+        counts = verification_summary(stats, self.wall_s, pose)
+        verified = f"{stats.candidates} candidate pairs verified"
+        return f"verification {self.params.hash}: {verified}, {counts}"
 
     def to_json_dict(self) -> dict[str, Any]:
         k, stats = self.intrinsics, self.stats

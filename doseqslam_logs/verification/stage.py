@@ -147,12 +147,6 @@ class VerificationStats:
         return self.load_s + self.features_s + self.pairs_s
 
     @property
-    def alternatives_note(self) -> str:
-        """ ", N of them on a next-best trajectory" for summary lines ("" when none)."""
-        n = self.from_alternatives
-        return f", {n} of them on a next-best trajectory" if n else ""
-
-    @property
     def ms_per_pair(self) -> float:
         return 1e3 * self.pairs_s / self.pairs if self.pairs else 0.0
 
