@@ -20,15 +20,11 @@ from mcap.records import Schema
 
 from .errors import SourceError
 from .sinks.mcap_writer import FRAME_TIMES_ATTACHMENT, METADATA_NAME
-from .sinks.messages import LOOP_CLOSURE, SEQUENCE, FrameTimes
+from .sinks.messages import LOOP_CLOSURE, REJECTED, SEQUENCE, SKIPPED, FrameTimes
 from .sources.mcap_source import DESERIALIZERS
 
 TOPICS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
 
-# A loop closure's `verification`: "accepted", "rejected" (the check refused it), "skipped"
-# (left unchecked at a high frame rate: the query stride, or a given-up sequence) or "off"
-# (no verification).
-ACCEPTED, REJECTED, SKIPPED = "accepted", "rejected", "skipped"
 NOT_REPORTED = frozenset({REJECTED, SKIPPED})
 
 

@@ -18,10 +18,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from ..annotated import ACCEPTED, REJECTED, SKIPPED, AnnotatedLog
+from ..annotated import AnnotatedLog
 from ..detector.events import Candidate, SequenceDecision
 from ..errors import GroundTruthError, UsageError
-from ..sinks.messages import NANOS_PER_SECOND, FrameTimes
+from ..sinks.messages import ACCEPTED, NANOS_PER_SECOND, REJECTED, SKIPPED, FrameTimes
 from .groundtruth import GroundTruth
 from .metrics import Evaluation, evaluate, format_side_by_side
 

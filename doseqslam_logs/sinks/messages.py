@@ -37,6 +37,11 @@ class MessageType:
     rank: int  # order among our messages that share a log time
 
 
+# A loop closure's `verification`: "accepted", "rejected" (the check refused it), "skipped"
+# (left unchecked at a high frame rate: the query stride, or a given-up sequence) or "off"
+# (no verification).
+ACCEPTED, REJECTED, SKIPPED, OFF = "accepted", "rejected", "skipped", "off"
+
 LOOP_CLOSURE = MessageType("LoopClosure", OUR_TOPIC_PREFIX + "loop_closures", 0)
 SEQUENCE = MessageType("Sequence", OUR_TOPIC_PREFIX + "sequences", 1)
 MESSAGE_TYPES: tuple[MessageType, ...] = (LOOP_CLOSURE, SEQUENCE)
@@ -182,7 +187,7 @@ def _verification_fields(
     frame = _frame_fields("refined_match", refined, frame_times)
     if check is None:
         return {
-            "verification": "off",
+            "verification": OFF,
             "inliers": -1,
             "tentative_matches": -1,
             "verification_model": "",
@@ -192,9 +197,9 @@ def _verification_fields(
         }
     verdict = check.verdict
     if check.skipped:  # not checked: no counts to record
-        status, inliers, tentative = "skipped", -1, -1
+        status, inliers, tentative = SKIPPED, -1, -1
     else:
-        status = "accepted" if verdict.accepted else "rejected"
+        status = ACCEPTED if verdict.accepted else REJECTED
         inliers, tentative = verdict.inliers, verdict.matches_tested
     return {
         "verification": status,
@@ -263,7 +268,7 @@ def _sequence_verification(
     decision: SequenceDecision, verifications: Verifications
 ) -> dict[str, Any]:
     if verifications is None:
-        return {"verification": "off", "verified_pairs": 0, "accepted_pairs": 0, "max_inliers": 0}
+        return {"verification": OFF, "verified_pairs": 0, "accepted_pairs": 0, "max_inliers": 0}
     verified = verifications.get(decision.sequence_id)
     checks = () if verified is None else verified.checks
     return {
