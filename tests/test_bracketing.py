@@ -182,6 +182,8 @@ def test_fundamental_and_rejected_verdicts_pass_through() -> None:
     assert bracketed_match([(3, plain)], 3, plain) == (3, plain)
     failed = _failed()
     assert bracketed_match([(3, failed)], 3, failed) == (3, failed)
+    with pytest.raises(ValueError, match="not among the checked frames"):
+        bracketed_match([(3, plain)], 4, plain)
 
 
 @given(st.lists(st.floats(-1.0, 1.0), min_size=1, max_size=12), st.data())

@@ -264,12 +264,17 @@ def bracketed_match(
     the views overlap, but the camera was not where the query was (e.g. the same facades seen
     from several metres further on). Accepted verdicts without a pose (fundamental matrix)
     are returned unchanged. Assumes a forward-looking camera.
+
+    Raises:
+        ValueError: `refined` is not one of the frames of `verdicts`.
     """
-    direction = match_camera_direction(verdict)
-    if not verdict.accepted or direction is None:
-        return refined, verdict
     ordered = sorted(verdicts, key=lambda item: item[0])
-    at = next(i for i, (frame, _) in enumerate(ordered) if frame == refined)
+    frames = [frame for frame, _ in ordered]
+    if refined not in frames:
+        raise ValueError(f"frame {refined} is not among the checked frames")
+    if not verdict.accepted or match_camera_direction(verdict) is None:
+        return refined, verdict
+    at = frames.index(refined)
     first, last = at, at
     while first > 0 and _has_pose(ordered[first - 1][1]):
         first -= 1
