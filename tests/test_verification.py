@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import hashlib
 import math
@@ -16,6 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from doseqslam_logs.cli.params_args import add_verification_options, verification_from_args
 from doseqslam_logs.errors import ParameterError
 from doseqslam_logs.evaluation.groundtruth import GroundTruth, load_ground_truth
 from doseqslam_logs.verification import (
@@ -424,6 +426,8 @@ def test_parameters_hash_is_stable_and_sensitive() -> None:
         {"confidence": 1.0},
         {"min_inliers": 7},
         {"refine_radius": -1},
+        {"max_rotation_deg": 0.0},
+        {"max_rotation_deg": 181.0},
     ],
 )
 def test_invalid_parameters_raise(changes: dict[str, object]) -> None:
@@ -433,7 +437,14 @@ def test_invalid_parameters_raise(changes: dict[str, object]) -> None:
 
 @pytest.mark.parametrize(
     "values",
-    [{"unknown": 1}, {"min_inliers": True}, {"min_inliers": 30.0}, {"ratio": "0.8"}],
+    [
+        {"unknown": 1},
+        {"min_inliers": True},
+        {"min_inliers": 30.0},
+        {"ratio": "0.8"},
+        {"bracket": 1},
+        {"bracket": "false"},
+    ],
 )
 def test_from_dict_rejects_wrong_names_and_types(values: dict[str, object]) -> None:
     with pytest.raises(ParameterError):
@@ -443,6 +454,16 @@ def test_from_dict_rejects_wrong_names_and_types(values: dict[str, object]) -> N
 def test_from_dict_accepts_ints_for_floats() -> None:
     params = VerificationParameters.from_dict({"ransac_threshold_px": 2})
     assert params.ransac_threshold_px == 2.0 and isinstance(params.ransac_threshold_px, float)
+
+
+def test_vset_takes_switches_as_true_and_false() -> None:
+    parser = argparse.ArgumentParser()
+    add_verification_options(parser)
+    args = parser.parse_args(["--vset", "bracket=false", "--vset", "max_rotation_deg=20"])
+    params = verification_from_args(args)
+    assert params is not None and params.bracket is False and params.max_rotation_deg == 20.0
+    with pytest.raises(ParameterError, match="bracket must be bool"):
+        verification_from_args(parser.parse_args(["--vset", "bracket=0"]))
 
 
 def test_intrinsics_validation() -> None:
