@@ -18,9 +18,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "tools"))
 
-import make_sample_logs as gen  # noqa: E402
 import test_pose_graph as procedure  # noqa: E402
 
 from doseqslam_logs.annotated import read_annotations  # noqa: E402
@@ -33,27 +31,11 @@ COMMITTED = [
 ]
 
 
-def drifting_drive(seed: int, folder: Path) -> Path:
-    config = gen.Config(
-        name=f"drift{seed}",
-        seed=seed,
-        route="loops",
-        duration=120.0,
-        rate=2.0,
-        width=256,
-        height=192,
-        formats=("ros2mcap",),
-        quality=70,
-        noise_sigma=1.5,
-    )
-    gen.generate(config, folder, progress=False)
-    return folder / f"drift{seed}.ros2.mcap"
-
-
 def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
-        logs = [(f"seed {s}", drifting_drive(s, root)) for s in (29, 2, 20)] + COMMITTED
+        drifting = [(f"seed {s}", procedure._generate_drifting_drive(root, s)) for s in (29, 2, 20)]
+        logs = drifting + COMMITTED
         print("| drive | loop edges | ATE before | ATE after | factor |")
         print("|---|---:|---:|---:|---:|")
         for name, log in logs:
