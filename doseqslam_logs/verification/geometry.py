@@ -25,6 +25,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from ..detector.segmentation import shrink
 from .params import VerificationParameters
@@ -237,15 +238,9 @@ def match_camera_direction(verdict: Verdict) -> npt.NDArray[np.float64] | None:
     without a relative pose."""
     if verdict.rotation_xyzw is None or verdict.translation_direction is None:
         return None
-    x, y, z, w = verdict.rotation_xyzw
-    rotation = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-    direction: npt.NDArray[np.float64] = -rotation.T @ np.asarray(verdict.translation_direction)
+    rotation = Rotation.from_quat(verdict.rotation_xyzw)  # scalar-last (x, y, z, w), as ours
+    translation = np.asarray(verdict.translation_direction, np.float64)
+    direction: npt.NDArray[np.float64] = rotation.inv().apply(-translation)
     return direction
 
 
@@ -272,7 +267,7 @@ def bracketed_match(
     frames = [frame for frame, _ in ordered]
     if refined not in frames:
         raise ValueError(f"frame {refined} is not among the checked frames")
-    if not verdict.accepted or match_camera_direction(verdict) is None:
+    if not _has_pose(verdict):
         return refined, verdict
     at = frames.index(refined)
     first, last = at, at
