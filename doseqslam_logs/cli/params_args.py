@@ -15,6 +15,7 @@ else:
     import tomli as tomllib
 from ..verification import (
     VERIFIED_ALTERNATIVES,
+    VERIFIED_SEGMENTATION,
     VERIFIED_THRESHOLD,
     Intrinsics,
     VerificationParameters,
@@ -66,8 +67,9 @@ def add_verification_options(parser: argparse.ArgumentParser) -> None:
         dest="verify",
         action="store_false",
         help="report the detector's decisions unchecked (the paper's behaviour; th defaults to "
-        f"the paper's 0.75 instead of {VERIFIED_THRESHOLD:g}, and no next-best trajectories "
-        "are recorded)",
+        f"the paper's 0.75 instead of {VERIFIED_THRESHOLD:g}, no next-best trajectories "
+        "are recorded, and sequences are segmented with the paper-like 'auto' detector, SIFT "
+        "where SURF is absent, instead of ORB)",
     )
     group.add_argument(
         "--intrinsics",
@@ -129,8 +131,10 @@ def intrinsics_from_args(args: argparse.Namespace) -> Intrinsics | None:
 
 def run_parameters(args: argparse.Namespace) -> Parameters:
     """The detector parameters of a run: with verification on, th defaults to
-    VERIFIED_THRESHOLD (the check supplies the precision) and alternatives to
-    VERIFIED_ALTERNATIVES (the check picks among them), unless --config or --set gave them.
+    VERIFIED_THRESHOLD (the check supplies the precision), alternatives to
+    VERIFIED_ALTERNATIVES (the check picks among them) and the segmentation to
+    VERIFIED_SEGMENTATION (as good once checked, and faster), unless --config or --set gave
+    them (either segmentation parameter keeps the other at its plain default).
 
     Raises ParameterError as parameters_from_args.
     """
@@ -140,6 +144,8 @@ def run_parameters(args: argparse.Namespace) -> Parameters:
             params = params.replace(threshold=VERIFIED_THRESHOLD)
         if not parameter_given(args, "alternatives"):
             params = params.replace(alternatives=VERIFIED_ALTERNATIVES)
+        if not any(parameter_given(args, name) for name in VERIFIED_SEGMENTATION):
+            params = params.replace(**VERIFIED_SEGMENTATION)
     return params
 
 

@@ -22,6 +22,7 @@ from .geometry import (
 from .params import (
     DEFAULT_VERIFICATION,
     VERIFIED_ALTERNATIVES,
+    VERIFIED_SEGMENTATION,
     VERIFIED_THRESHOLD,
     VerificationParameters,
     verified_detector_parameters,
@@ -32,6 +33,7 @@ __all__ = [
     "DEFAULT_VERIFICATION",
     "NOT_BRACKETED",
     "VERIFIED_ALTERNATIVES",
+    "VERIFIED_SEGMENTATION",
     "VERIFIED_THRESHOLD",
     "FrameFeatures",
     "Intrinsics",
