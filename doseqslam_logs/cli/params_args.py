@@ -14,11 +14,10 @@ if sys.version_info >= (3, 11):
 else:
     import tomli as tomllib
 from ..verification import (
-    VERIFIED_ALTERNATIVES,
-    VERIFIED_SEGMENTATION,
     VERIFIED_THRESHOLD,
     Intrinsics,
     VerificationParameters,
+    verified_defaults,
 )
 
 
@@ -130,22 +129,17 @@ def intrinsics_from_args(args: argparse.Namespace) -> Intrinsics | None:
 
 
 def run_parameters(args: argparse.Namespace) -> Parameters:
-    """The detector parameters of a run: with verification on, th defaults to
-    VERIFIED_THRESHOLD (the check supplies the precision), alternatives to
-    VERIFIED_ALTERNATIVES (the check picks among them) and the segmentation to
-    VERIFIED_SEGMENTATION (as good once checked, and faster), unless --config or --set gave
-    them (either segmentation parameter keeps the other at its plain default).
+    """The detector parameters of a run: with verification on, th, alternatives and the
+    segmentation default to the verified ones (`verified_defaults`: the check supplies the
+    precision, picks among the alternatives, and makes the faster segmentation as good),
+    unless --config or --set gave them (either segmentation parameter keeps the other at its
+    plain default).
 
     Raises ParameterError as parameters_from_args.
     """
     params = parameters_from_args(args)
     if getattr(args, "verify", False):
-        if not threshold_given(args):
-            params = params.replace(threshold=VERIFIED_THRESHOLD)
-        if not parameter_given(args, "alternatives"):
-            params = params.replace(alternatives=VERIFIED_ALTERNATIVES)
-        if not any(parameter_given(args, name) for name in VERIFIED_SEGMENTATION):
-            params = params.replace(**VERIFIED_SEGMENTATION)
+        params = params.replace(**verified_defaults(lambda name: parameter_given(args, name)))
     return params
 
 

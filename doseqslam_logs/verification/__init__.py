@@ -25,6 +25,7 @@ from .params import (
     VERIFIED_SEGMENTATION,
     VERIFIED_THRESHOLD,
     VerificationParameters,
+    verified_defaults,
     verified_detector_parameters,
 )
 from .stage import PairCheck, VerificationStats, VerifiedDecision, Verifier
@@ -48,6 +49,7 @@ __all__ = [
     "extract_features",
     "match_camera_direction",
     "refine_match",
+    "verified_defaults",
     "verified_detector_parameters",
     "verify_pair",
 ]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Literal, get_args
 
@@ -167,15 +167,26 @@ VERIFIED_SEGMENTATION: Mapping[str, Any] = {
 }
 
 
+def verified_defaults(given: Callable[[str], bool]) -> dict[str, Any]:
+    """The detector parameters that verification changes, as changes for Parameters.replace:
+    th = VERIFIED_THRESHOLD, alternatives = VERIFIED_ALTERNATIVES and VERIFIED_SEGMENTATION,
+    each left out where `given(name)` says the user set it (the segmentation as a whole, when
+    either of its parameters is given)."""
+    defaults: dict[str, Any] = {}
+    if not given("threshold"):
+        defaults["threshold"] = VERIFIED_THRESHOLD
+    if not given("alternatives"):
+        defaults["alternatives"] = VERIFIED_ALTERNATIVES
+    if not any(given(name) for name in VERIFIED_SEGMENTATION):
+        defaults.update(VERIFIED_SEGMENTATION)
+    return defaults
+
+
 def verified_detector_parameters(**changes: Any) -> Parameters:
     """The detector's defaults as `annotate` and `evaluate` run them with verification on
-    (th = VERIFIED_THRESHOLD, alternatives = VERIFIED_ALTERNATIVES, VERIFIED_SEGMENTATION
-    unless `changes` name either of its parameters), with `changes` applied.
+    (`verified_defaults`), with `changes` applied.
 
     Raises:
         ParameterError: for an unknown or invalid parameter.
     """
-    base = Parameters(threshold=VERIFIED_THRESHOLD, alternatives=VERIFIED_ALTERNATIVES)
-    if not VERIFIED_SEGMENTATION.keys() & changes.keys():
-        base = base.replace(**VERIFIED_SEGMENTATION)
-    return base.replace(**changes)
+    return Parameters().replace(**verified_defaults(changes.__contains__), **changes)
