@@ -29,13 +29,14 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from make_sample_logs import START_NS  # the generated hour's first stamp
+
 SAMPLES = (
     "sample_logs/drive_loops.ros2.mcap",
     "sample_logs/drive_varrate.bag",
     "sample_logs/drive_parked.ros2.mcap",
 )
 RTABMAP = "rtabmap_samples_loop"
-HOUR_START_NS = 1_700_000_000 * 10**9  # tools/make_sample_logs.py's first stamp
 # The ground truth of docs/results.md's hour rows (as the sample logs' .gt.npz).
 HOUR_GT = [
     "--gt-topic",
@@ -88,7 +89,7 @@ def measure(cli: str, options: list[str], tmp: Path, args: argparse.Namespace) -
     cells.append(tp_fp(rtab["verified"]))
     cells.append(f"{100 * rtab['r_p100']:.2f}")
     out = tmp / "hour.mcap"
-    end = HOUR_START_NS + round(args.minutes * 60e9)
+    end = START_NS + round(args.minutes * 60e9)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     run([cli, "annotate", str(args.hour), "-o", str(out), "--sidecar", "--end", str(end), *options])
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -102,17 +103,16 @@ def tp_fp(figures: dict[str, Any]) -> str:
     return f"{figures['tp']} / {figures['fp']}"
 
 
-def run(command: list[str]) -> None:
+def run(command: list[str]) -> str:
+    """The command's standard output; exits with its error when it fails."""
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode:
         sys.exit(f"{shlex.join(command)} failed ({done.returncode}): {done.stderr.strip()}")
+    return done.stdout
 
 
 def run_json(command: list[str]) -> dict[str, Any]:
-    done = subprocess.run([*command, "--json"], capture_output=True, text=True, check=False)
-    if done.returncode:
-        sys.exit(f"{shlex.join(command)} failed ({done.returncode}): {done.stderr.strip()}")
-    result: dict[str, Any] = json.loads(done.stdout)
+    result: dict[str, Any] = json.loads(run([*command, "--json"]))
     return result
 
 
