@@ -9,12 +9,12 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from doseqslam_logs.annotate import AnnotateOptions, annotate_log
-from doseqslam_logs.annotated import read_annotations
+from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters, make_detector
-from doseqslam_logs.replay import replay
-from doseqslam_logs.sources.folder import folder_frames, list_images
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.pipeline.replay import replay
+from doseqslam_logs.sources.image_folder import folder_frames, list_images
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 

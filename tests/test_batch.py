@@ -21,7 +21,6 @@ from pathlib import Path
 
 import pytest
 
-from doseqslam_logs.annotate import AnnotateOptions, annotate_log, source_sha256
 from doseqslam_logs.batch import local
 from doseqslam_logs.batch.discovery import discover_logs, output_name
 from doseqslam_logs.batch.job import Job, Outcome, options_hash
@@ -33,6 +32,7 @@ from doseqslam_logs.cli.main import build_parser, main
 from doseqslam_logs.cli.params_args import run_parameters
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import UsageError
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log, source_sha256
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "sample_logs"

@@ -18,10 +18,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from doseqslam_logs.annotate import AnnotateOptions, annotate_log
-from doseqslam_logs.annotated import read_annotations
+from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
-from doseqslam_logs.log_frames import FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
 from doseqslam_logs.sources import open_source, pick_image_topic
 from doseqslam_logs.sources.camera_info import read_camera_info
 from doseqslam_logs.verification import (

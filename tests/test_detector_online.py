@@ -201,8 +201,8 @@ def test_frames_are_compared_in_a_place_recognizing_way(shared_data) -> None:
 
 @pytest.mark.parametrize("method", ["doseqslam", "seqslam"])
 def test_a_prepare_pool_gives_the_same_decisions(shared_data, method) -> None:
-    from doseqslam_logs.frames import Frame
-    from doseqslam_logs.replay import replay
+    from doseqslam_logs.pipeline.replay import replay
+    from doseqslam_logs.sources.frame import Frame
 
     frames = [
         Frame(i, i * SECOND, i * SECOND, None, f) for i, f in enumerate(rtabmap_frames(shared_data))

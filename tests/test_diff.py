@@ -1,4 +1,4 @@
-"""`diff`: two annotated logs compared by time (doseqslam_logs.diff, cli/diff.py)."""
+"""`diff`: two annotated logs compared by time (doseqslam_logs.evaluation.diff, cli/diff.py)."""
 
 from __future__ import annotations
 
@@ -12,18 +12,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from doseqslam_logs.annotate import AnnotateOptions, annotate_log
-from doseqslam_logs.annotated import AnnotatedLog, read_annotations
+from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
+from doseqslam_logs.annotations.records import FrameTimes, time_dict
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector.params import Parameters
-from doseqslam_logs.diff import (
+from doseqslam_logs.evaluation.diff import (
     Pair,
     diff_logs,
     match_pairs,
     recorded_parameters,
     reported_pair,
 )
-from doseqslam_logs.sinks.messages import FrameTimes, time_dict
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.verification import VerificationParameters
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"

@@ -14,17 +14,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from doseqslam_logs.annotate import AnnotateOptions, AnnotateResult, annotate_log
-from doseqslam_logs.annotated import AnnotatedLog, read_annotations
+from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
+from doseqslam_logs.annotations.records import FrameTimes
 from doseqslam_logs.cli import evaluate_log
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import ExitCode, GroundTruthError
-from doseqslam_logs.evaluation.annotated_log import (
-    evaluate_annotated_log,
-    format_log_report,
-    raw_decisions,
-)
 from doseqslam_logs.evaluation.groundtruth import GroundTruth, load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
 from doseqslam_logs.evaluation.pose_ground_truth import (
@@ -35,9 +30,14 @@ from doseqslam_logs.evaluation.pose_ground_truth import (
     pose_ground_truth,
     yaw_from_quaternions,
 )
-from doseqslam_logs.poses import read_poses
-from doseqslam_logs.sinks.messages import FrameTimes
+from doseqslam_logs.evaluation.recorded_run import (
+    evaluate_annotated_log,
+    format_log_report,
+    raw_decisions,
+)
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
 from doseqslam_logs.sources import open_source
+from doseqslam_logs.sources.poses import read_poses
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOG = SAMPLES / "drive_loops.ros2.mcap"
@@ -321,7 +321,7 @@ def test_errors_are_one_line_with_their_exit_code(annotated, capsys, argv, code,
 
 def test_plot_without_matplotlib_is_a_usage_error(annotated, capsys, monkeypatch, tmp_path) -> None:
     out, _ = annotated
-    monkeypatch.delitem(sys.modules, "doseqslam_logs.plots", raising=False)
+    monkeypatch.delitem(sys.modules, "doseqslam_logs.evaluation.plots", raising=False)
     # Every matplotlib module: cached submodules (an earlier test drew pictures) would
     # otherwise still import.
     hidden = [name for name in sys.modules if name.split(".")[0] == "matplotlib"]

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from doseqslam_logs.annotated import AnnotatedLog, read_annotations
+from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.export.loops import COLUMNS, frame_times_ns, loop_closure_row, matched_index
 from doseqslam_logs.export.pose_graph import verified_body_rotation
-from doseqslam_logs.poses import read_poses
+from doseqslam_logs.sources.poses import read_poses
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 BAG = SAMPLES / "drive_loops.bag"  # annotated into an MCAP with the ROS 1 profile

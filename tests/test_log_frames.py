@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from doseqslam_logs.cli.times import parse_time_ns
 from doseqslam_logs.errors import ImageDecodeError, SourceError, UsageError
-from doseqslam_logs.log_frames import SKIP_BACKWARDS, SKIP_DECODE, FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.decode import SKIP_BACKWARDS, SKIP_DECODE, FrameCounts, decoded_frames
 from doseqslam_logs.sources.base import ImageMessage
 
 

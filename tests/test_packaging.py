@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from doseqslam_logs.schema_files import read_schema
+from doseqslam_logs.annotations.schema_files import read_schema
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from doseqslam_logs.annotate import annotate_log
-from doseqslam_logs.annotated import read_annotations
+from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.evaluation.difference_matrix import difference_matrix
+from doseqslam_logs.pipeline.annotate import annotate_log
 
 pytest.importorskip("matplotlib")
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
-from doseqslam_logs import plots
+from doseqslam_logs.evaluation import plots
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOG = SAMPLES / "drive_loops.ros2.mcap"

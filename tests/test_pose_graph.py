@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from doseqslam_logs.annotated import read_annotations
+from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.export.loops import frame_times_ns, matched_index
 from doseqslam_logs.export.pose_graph import verified_body_rotation
-from doseqslam_logs.poses import read_poses
+from doseqslam_logs.sources.poses import read_poses
 
 gtsam = pytest.importorskip("gtsam")
 

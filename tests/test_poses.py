@@ -16,7 +16,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from doseqslam_logs.errors import SourceError
-from doseqslam_logs.poses import PoseTrack, read_poses, slerp
+from doseqslam_logs.sources.poses import PoseTrack, read_poses, slerp
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 DRIVE_LOOPS = {

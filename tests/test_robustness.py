@@ -29,7 +29,7 @@ from mcap.reader import make_reader
 
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ExitCode, ImageDecodeError, SourceError
-from doseqslam_logs.log_frames import (
+from doseqslam_logs.pipeline.decode import (
     CLOCK_JUMP_NS,
     SKIP_BACKWARDS,
     FrameCounts,

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from doseqslam_logs.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.detector import Parameters, SequenceDecision, make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
-from doseqslam_logs.log_frames import FrameCounts, decoded_frames
-from doseqslam_logs.replay import replay
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.replay import replay
 from doseqslam_logs.sources import open_source, pick_image_topic
 
 REPO = Path(__file__).resolve().parents[1]

@@ -24,23 +24,22 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from doseqslam_logs.annotations.records import (
+    LOOP_CLOSURE,
+    SEQUENCE,
+    FrameTimes,
+    loop_closure_messages,
+    sequence_messages,
+)
+from doseqslam_logs.annotations.schema_files import read_schema
 from doseqslam_logs.detector.events import Candidate, SequenceDecision
 from doseqslam_logs.errors import OutputError, SourceError
-from doseqslam_logs.schema_files import read_schema
-from doseqslam_logs.sinks import mcap_writer
 from doseqslam_logs.sinks.encoders import ENCODERS, Ros1Encoder, Ros2Encoder, encoder_for_profile
 from doseqslam_logs.sinks.mcap_writer import (
     Annotations,
     detect_input,
     mcap_profile,
     write_annotated_mcap,
-)
-from doseqslam_logs.sinks.messages import (
-    LOOP_CLOSURE,
-    SEQUENCE,
-    FrameTimes,
-    loop_closure_messages,
-    sequence_messages,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -686,7 +685,7 @@ KILL_SNIPPET = textwrap.dedent(
     from doseqslam_logs.detector.events import SequenceDecision
     from doseqslam_logs.sinks import encoders
     from doseqslam_logs.sinks.mcap_writer import Annotations, write_annotated_mcap
-    from doseqslam_logs.sinks.messages import FrameTimes
+    from doseqslam_logs.annotations.records import FrameTimes
 
     original = encoders.Ros2Encoder.encode
     def slow(self, message_type, fields):
@@ -735,7 +734,3 @@ def test_killed_writer_leaves_no_output(shared_data: Path, tmp_path: Path) -> No
 def test_metadata_must_be_strings() -> None:
     with pytest.raises(TypeError):
         Annotations([], {"frames_used": 3})  # type: ignore[dict-item]
-
-
-def test_writer_module_has_fixed_settings() -> None:
-    assert mcap_writer.CHUNK_SIZE == 1024 * 1024 and mcap_writer.METADATA_NAME == "doseqslam"

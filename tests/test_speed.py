@@ -16,10 +16,10 @@ from hypothesis import strategies as st
 from doseqslam_logs.detector import Parameters, PreparedFrame, make_detector
 from doseqslam_logs.detector import enhance as enhance_module
 from doseqslam_logs.detector.difference import FrameStore, sad_rows, sad_sums_uint8
-from doseqslam_logs.frames import Frame
-from doseqslam_logs.log_frames import FrameCounts, decoded_frames
-from doseqslam_logs.replay import LOOKAHEAD_FRAMES, replay
+from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.replay import LOOKAHEAD_FRAMES, replay
 from doseqslam_logs.sources import open_source, pick_image_topic
+from doseqslam_logs.sources.frame import Frame
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "sample_logs" / "drive_loops.ros2.mcap"

@@ -10,19 +10,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from doseqslam_logs.annotate import AnnotateOptions, annotate_log
-from doseqslam_logs.annotated import read_annotations
+from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
 from doseqslam_logs.evaluation.verified import verified_decisions
-from doseqslam_logs.frame_reader import FolderFrameReader, runs
-from doseqslam_logs.log_frames import FrameCounts, decoded_frames
-from doseqslam_logs.replay import replay
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.replay import replay
+from doseqslam_logs.pipeline.reread import FolderFrameReader, runs
 from doseqslam_logs.sources import open_source, pick_image_topic
 from doseqslam_logs.sources.camera_info import read_camera_info
-from doseqslam_logs.sources.folder import folder_frames, list_images
+from doseqslam_logs.sources.image_folder import folder_frames, list_images
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
     VERIFIED_THRESHOLD,

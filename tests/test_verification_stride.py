@@ -17,16 +17,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from doseqslam_logs.annotate import AnnotateOptions, annotate_log
-from doseqslam_logs.annotated import read_annotations
+from doseqslam_logs.annotations.reader import read_annotations
+from doseqslam_logs.annotations.records import FrameTimes
 from doseqslam_logs.detector.events import Alternative, Candidate, SequenceDecision
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.export.loops import loops_summary
-from doseqslam_logs.frame_reader import FolderFrameReader, LogFrameReader
-from doseqslam_logs.log_frames import FrameCounts, decoded_frames
-from doseqslam_logs.sinks.messages import FrameTimes
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.reread import FolderFrameReader, LogFrameReader
 from doseqslam_logs.sources import open_source, pick_image_topic
-from doseqslam_logs.sources.folder import list_images
+from doseqslam_logs.sources.image_folder import list_images
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
     FrameFeatures,
@@ -308,7 +308,7 @@ def test_ranged_reads_do_not_parse_the_summary_again(monkeypatch) -> None:
 
 
 def test_pictures_draw_skipped_pairs_apart_from_rejected_ones(strided_log) -> None:
-    plots = pytest.importorskip("doseqslam_logs.plots")
+    plots = pytest.importorskip("doseqslam_logs.evaluation.plots")
     from doseqslam_logs.cli.evaluate_log import _detections
 
     log = read_annotations(strided_log)

@@ -24,6 +24,7 @@ disk) and are removed. Prints a markdown table; --json FILE also writes every fi
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import re
@@ -34,6 +35,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -78,6 +80,14 @@ def _end_ns(log: Path, minutes: float | None) -> tuple[str, int | None]:
         return topic, first + round(minutes * 60e9)
 
 
+def _module(name: str, before_the_layout: str) -> ModuleType:
+    """A module of this package, or of a --compare package from before the pipeline/ layout."""
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError:
+        return importlib.import_module(before_the_layout)
+
+
 def _frame_span_s(first_ns: int | None, last_ns: int | None, frames: int) -> float:
     """The log time the frames cover, one frame period included."""
     if first_ns is None or last_ns is None or frames < 2:
@@ -87,11 +97,12 @@ def _frame_span_s(first_ns: int | None, last_ns: int | None, frames: int) -> flo
 
 
 def measure_decode(log: Path, minutes: float | None) -> dict[str, Any]:
-    from doseqslam_logs.log_frames import FrameCounts, decoded_frames
     from doseqslam_logs.sources import open_source
 
+    decode = _module("doseqslam_logs.pipeline.decode", "doseqslam_logs.log_frames")
+    decoded_frames = decode.decoded_frames
     topic, end_ns = _end_ns(log, minutes)
-    counts = FrameCounts()
+    counts = decode.FrameCounts()
     first = last = None
     start = time.perf_counter()
     with open_source(log) as source:
@@ -106,9 +117,10 @@ def measure_decode(log: Path, minutes: float | None) -> dict[str, Any]:
 def measure_annotate(
     log: Path, minutes: float | None, sidecar: bool, verify: bool, out: Path
 ) -> dict[str, Any]:
-    from doseqslam_logs.annotate import AnnotateOptions, annotate_log
     from doseqslam_logs.detector import Parameters
 
+    pipeline = _module("doseqslam_logs.pipeline.annotate", "doseqslam_logs.annotate")
+    AnnotateOptions, annotate_log = pipeline.AnnotateOptions, pipeline.annotate_log
     topic, end_ns = _end_ns(log, minutes)
     extra: dict[str, Any] = {}
     params = Parameters()

@@ -51,10 +51,10 @@ COLUMNS = (
 def cache_decisions(log: Path, cache: Path) -> None:
     """Replay the detector once (as annotate does, verification off) and pickle what the
     verification stage needs."""
-    from doseqslam_logs.annotate import _TimesRecorder  # annotate's own frame-time record
     from doseqslam_logs.detector import make_detector
-    from doseqslam_logs.log_frames import FrameCounts, decoded_frames
-    from doseqslam_logs.replay import replay
+    from doseqslam_logs.pipeline.annotate import _TimesRecorder  # annotate's own frame-time record
+    from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
+    from doseqslam_logs.pipeline.replay import replay
     from doseqslam_logs.sources import open_source, pick_image_topic
     from doseqslam_logs.verification import verified_detector_parameters
 
@@ -71,7 +71,7 @@ def cache_decisions(log: Path, cache: Path) -> None:
 def child(cache: Path) -> None:
     """One measurement; prints one JSON line."""
     import doseqslam_logs
-    from doseqslam_logs.frame_reader import LogFrameReader
+    from doseqslam_logs.pipeline.reread import LogFrameReader
     from doseqslam_logs.verification import DEFAULT_VERIFICATION
     from doseqslam_logs.verification.stage import verify_in_threads
 

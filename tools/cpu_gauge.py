@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 
 from doseqslam_logs.detector.segmentation import shrink
-from doseqslam_logs.log_frames import FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
 from doseqslam_logs.sources import open_source, pick_image_topic
 
 FRAMES = 400

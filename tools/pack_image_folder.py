@@ -30,7 +30,7 @@ from camera_log_writers import (
     parse_formats,
 )
 
-from doseqslam_logs.sources.folder import list_images
+from doseqslam_logs.sources.image_folder import list_images
 
 START_NS = 1_700_000_000 * 10**9  # a plausible epoch time, so logs look recorded, not at 1970
 ENCODINGS = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}

@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import test_pose_graph as procedure  # noqa: E402
 
-from doseqslam_logs.annotated import read_annotations  # noqa: E402
+from doseqslam_logs.annotations.reader import read_annotations  # noqa: E402
 
 SAMPLES = ROOT / "sample_logs"
 COMMITTED = [

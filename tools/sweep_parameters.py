@@ -22,8 +22,8 @@ from doseqslam_logs.cli.params_args import add_parameter_options, parameters_fro
 from doseqslam_logs.detector import make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
-from doseqslam_logs.replay import replay
-from doseqslam_logs.sources.folder import folder_frames
+from doseqslam_logs.pipeline.replay import replay
+from doseqslam_logs.sources.image_folder import folder_frames
 
 
 def main() -> int:

@@ -49,8 +49,8 @@ from doseqslam_logs.detector import SequenceDecision, make_detector
 from doseqslam_logs.errors import SourceError
 from doseqslam_logs.evaluation.groundtruth import GroundTruth, load_ground_truth
 from doseqslam_logs.evaluation.metrics import Evaluation, evaluate
-from doseqslam_logs.replay import replay
-from doseqslam_logs.sources.folder import folder_frames, list_images
+from doseqslam_logs.pipeline.replay import replay
+from doseqslam_logs.sources.image_folder import folder_frames, list_images
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
     FrameFeatures,

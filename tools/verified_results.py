@@ -25,9 +25,9 @@ from doseqslam_logs.detector import make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import Evaluation, evaluate
 from doseqslam_logs.evaluation.verified import verified_decisions
-from doseqslam_logs.frame_reader import FolderFrameReader
-from doseqslam_logs.replay import replay
-from doseqslam_logs.sources.folder import folder_frames, list_images
+from doseqslam_logs.pipeline.replay import replay
+from doseqslam_logs.pipeline.reread import FolderFrameReader
+from doseqslam_logs.sources.image_folder import folder_frames, list_images
 from doseqslam_logs.verification import DEFAULT_VERIFICATION, verified_detector_parameters
 from doseqslam_logs.verification.stage import verify_in_threads
 

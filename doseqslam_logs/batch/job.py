@@ -12,10 +12,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..annotate import AnnotateOptions, AnnotateResult, annotate_log, source_sha256
 from ..detector import Parameters
+from ..detector.fingerprint import fingerprint
 from ..errors import DoseqslamError, ExitCode, OutputError
-from ..fingerprint import fingerprint
+from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log, source_sha256
 from .manifest import Counts, FileStamp
 
 # (input key, "expected" | "progress", number): frames expected or done, from a worker.

@@ -13,9 +13,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from .. import __version__
-from ..annotate import AnnotateOptions, source_sha256
 from ..detector import Parameters
 from ..errors import OutputError
+from ..pipeline.annotate import AnnotateOptions, source_sha256
 from .discovery import LogInput
 from .engine import EngineSettings, create_engine
 from .job import Job, Outcome, options_hash

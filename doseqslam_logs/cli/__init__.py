@@ -1,0 +1,2 @@
+"""The `doseqslam-logs` command: one module per subcommand, each parsing its arguments and
+calling the library."""

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..annotate import AnnotateOptions, AnnotateResult, annotate_log
+from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
 from .params_args import (
     add_parameter_options,
     add_verification_options,

@@ -13,9 +13,9 @@ import json
 import math
 from pathlib import Path
 
-from ..annotated import read_annotations
-from ..diff import diff_logs
+from ..annotations.reader import read_annotations
 from ..errors import ExitCode, SourceError, UsageError
+from ..evaluation.diff import diff_logs
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -26,9 +26,9 @@ from ..errors import GroundTruthError, UsageError
 from ..evaluation.groundtruth import load_ground_truth
 from ..evaluation.metrics import Evaluation, evaluate, format_report, format_side_by_side
 from ..evaluation.verified import verified_decisions
-from ..frame_reader import FolderFrameReader
-from ..replay import ReplayResult, replay
-from ..sources.folder import folder_frames, list_images
+from ..pipeline.replay import ReplayResult, replay
+from ..pipeline.reread import FolderFrameReader
+from ..sources.image_folder import folder_frames, list_images
 from ..verification import Intrinsics, VerificationParameters, VerificationStats
 from ..verification.stage import verify_in_threads
 from . import evaluate_log

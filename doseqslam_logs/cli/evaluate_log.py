@@ -13,15 +13,8 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..annotate import source_sha256
-from ..annotated import NOT_REPORTED, AnnotatedLog, read_annotations
+from ..annotations.reader import NOT_REPORTED, AnnotatedLog, read_annotations
 from ..errors import UsageError
-from ..evaluation.annotated_log import (
-    LogEvaluation,
-    evaluate_annotated_log,
-    format_log_report,
-    matched_index,
-)
 from ..evaluation.groundtruth import GroundTruth, load_ground_truth
 from ..evaluation.pose_ground_truth import (
     FramePoses,
@@ -30,8 +23,15 @@ from ..evaluation.pose_ground_truth import (
     frame_poses,
     pose_ground_truth,
 )
-from ..poses import PoseTrack, read_poses
+from ..evaluation.recorded_run import (
+    LogEvaluation,
+    evaluate_annotated_log,
+    format_log_report,
+    matched_index,
+)
+from ..pipeline.annotate import source_sha256
 from ..sources import open_source
+from ..sources.poses import PoseTrack, read_poses
 
 # Options of the annotated-log mode, by argparse destination, as the user spells them.
 _LOG_OPTIONS = {
@@ -130,11 +130,11 @@ def _check_log_args(args: argparse.Namespace) -> None:
 
 
 def _plots_module() -> ModuleType:
-    """doseqslam_logs.plots, or a usage error when matplotlib is not installed."""
+    """doseqslam_logs.evaluation.plots, or a usage error when matplotlib is not installed."""
     try:
         # Through sys.modules, not the package attribute `from .. import plots` would return
         # once the module was imported (a test that removes matplotlib relies on that).
-        return importlib.import_module("doseqslam_logs.plots")
+        return importlib.import_module("doseqslam_logs.evaluation.plots")
     except ImportError as exc:
         raise UsageError(
             f"--plot needs matplotlib ({exc}): pip install 'doseqslam-logs[plot]'"

@@ -12,7 +12,7 @@ import math
 import sys
 from pathlib import Path
 
-from ..annotated import read_annotations
+from ..annotations.reader import read_annotations
 from ..errors import UsageError
 from ..export import FORMATS, ExportOptions
 from ..export.base import DEFAULT_LOOP_ROTATION_SIGMA_DEG, DEFAULT_LOOP_TRANSLATION_SIGMA_M

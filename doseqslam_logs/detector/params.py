@@ -11,7 +11,7 @@ from typing import Any, Literal, get_args
 import tomli_w
 
 from ..errors import ParameterError
-from ..fingerprint import canonical_json, fingerprint
+from .fingerprint import canonical_json, fingerprint
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -19,16 +19,16 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
+from ..annotations.records import NO_STAMP
 from ..detector.difference import FrameStore, sad_rows
 from ..detector.enhance import enhance
 from ..detector.params import Parameters
 from ..detector.preprocess import frame_vector
 from ..errors import ImageDecodeError, SourceError, UsageError
-from ..log_frames import FrameCounts, TimeSource, decoded_frames
-from ..sinks.messages import NO_STAMP
+from ..pipeline.decode import FrameCounts, TimeSource, decoded_frames
 from ..sources import decode_gray, open_source
-from .annotated_log import frame_count
+from .recorded_run import frame_count
 
 MAX_SIDE = 1500
 # Query rows compared per SAD call: bounds the temporaries for large sides.

@@ -23,9 +23,9 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from ..annotations.records import NO_STAMP, FrameTimes
 from ..errors import UsageError
-from ..poses import PoseTrack
-from ..sinks.messages import NO_STAMP, FrameTimes
+from ..sources.poses import PoseTrack
 from .groundtruth import GroundTruth
 
 FloatArray = npt.NDArray[np.float64]

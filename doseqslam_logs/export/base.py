@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
 
 # The loop-edge measurement model of docs/export.md: a loop closure says "same place", not how
 # far apart the two cameras were, so its translation is weak and its rotation firmer.

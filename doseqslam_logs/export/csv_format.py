@@ -6,7 +6,7 @@ import csv
 import io
 from collections.abc import Iterator
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
 from .base import Exporter, ExportOptions, ExportResult
 from .loops import COLUMNS, loop_closure_row, loops_summary, selected_loop_closures
 

@@ -17,7 +17,7 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
 from ..errors import UsageError
 from .base import Exporter, ExportOptions, ExportResult
 from .pose_graph import Edge, PoseGraph, build_pose_graph

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterator
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
 from .base import Exporter, ExportOptions, ExportResult
 from .loops import loop_closure_row, loops_summary, selected_loop_closures
 

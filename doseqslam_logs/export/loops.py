@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
+from ..annotations.records import NANOS_PER_SECOND, REJECTED, SKIPPED
 from ..errors import SourceError
-from ..sinks.messages import NANOS_PER_SECOND, REJECTED, SKIPPED
 
 ROTATION_COLUMNS = ("rotation_qx", "rotation_qy", "rotation_qz", "rotation_qw")
 DIRECTION_COLUMNS = ("translation_dx", "translation_dy", "translation_dz")

@@ -31,9 +31,9 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
 from ..errors import SourceError
-from ..poses import PoseTrack, read_poses
+from ..sources.poses import PoseTrack, read_poses
 from .base import ExportOptions
 from .loops import frame_times_ns, matched_index
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from ..annotated import AnnotatedLog
-from ..sinks.messages import NANOS_PER_SECOND
+from ..annotations.reader import AnnotatedLog
+from ..annotations.records import NANOS_PER_SECOND
 from .base import Exporter, ExportOptions, ExportResult
 from .g2o_format import require_odometry_topic
 from .pose_graph import PoseGraph, build_pose_graph

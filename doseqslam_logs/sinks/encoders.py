@@ -18,8 +18,8 @@ from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from ..schema_files import read_schema
-from .messages import MESSAGE_TYPES, MessageType
+from ..annotations.records import MESSAGE_TYPES, MessageType
+from ..annotations.schema_files import read_schema
 
 ROS_PACKAGE = "doseqslam_msgs"
 TIME_TYPE = "builtin_interfaces/msg/Time"

@@ -31,13 +31,11 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from .. import __version__
-from ..detector.events import SequenceDecision
-from ..errors import DoseqslamError, OutputError, SourceError
-from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
-from .atomic import atomic_output
-from .encoders import MessageEncoder, encoder_for_profile
-from .messages import (
+from ..annotations.records import (
+    FRAME_TIMES_ATTACHMENT,
+    FRAME_TIMES_MEDIA_TYPE,
     MESSAGE_TYPES,
+    METADATA_NAME,
     OUR_TOPIC_PREFIX,
     FrameTimes,
     MessageType,
@@ -46,12 +44,12 @@ from .messages import (
     loop_closure_messages,
     sequence_messages,
 )
+from ..detector.events import SequenceDecision
+from ..errors import DoseqslamError, OutputError, SourceError
+from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
+from .atomic import atomic_output
+from .encoders import MessageEncoder, encoder_for_profile
 
-METADATA_NAME = "doseqslam"  # the metadata record we write (and replace when re-annotating)
-# Every frame's log time and header stamp, by frame index (FrameTimes.to_json), so that readers
-# of the output can place any frame index in time (ground truth from poses, plots, export).
-FRAME_TIMES_ATTACHMENT = "doseqslam/frame_times"
-FRAME_TIMES_MEDIA_TYPE = "application/json"
 LIBRARY = f"doseqslam-logs/{__version__}"
 CHUNK_SIZE = 1024 * 1024  # fixed, like the compression: part of what makes outputs identical
 

@@ -7,9 +7,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Literal, get_args
 
+from ..detector.fingerprint import canonical_json, fingerprint
 from ..detector.params import Parameters
 from ..errors import ParameterError
-from ..fingerprint import canonical_json, fingerprint
 
 VerificationDetector = Literal["sift", "orb", "akaze", "brisk"]
 RobustMethod = Literal["ransac", "magsac"]

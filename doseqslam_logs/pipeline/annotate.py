@@ -14,33 +14,33 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import __version__
-from .detector import Parameters, make_detector
-from .errors import (
+from .. import __version__
+from ..annotations.records import FrameTimes
+from ..detector import Parameters, make_detector
+from ..errors import (
     DoseqslamError,
     ImageDecodeError,
     OutputError,
     SourceError,
     TimestampError,
 )
-from .frame_reader import LogFrameReader
-from .frames import Frame
-from .log_frames import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
-from .replay import ReplayResult, replay
-from .sinks.atomic import scratch_file
-from .sinks.mcap_writer import (
+from ..sinks.atomic import scratch_file
+from ..sinks.mcap_writer import (
     Annotations,
     WriteSummary,
     refuse_same_file,
     write_annotated_mcap,
 )
-from .sinks.messages import FrameTimes
-from .sources import open_source, pick_image_topic
-from .sources.base import MCAP_MAGIC
-from .sources.camera_info import read_camera_info
-from .sources.salvage import SalvageReport, salvage_mcap
-from .verification import Intrinsics, VerificationParameters, VerificationStats
-from .verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
+from ..sources import open_source, pick_image_topic
+from ..sources.base import MCAP_MAGIC
+from ..sources.camera_info import read_camera_info
+from ..sources.frame import Frame
+from ..sources.salvage import SalvageReport, salvage_mcap
+from ..verification import Intrinsics, VerificationParameters, VerificationStats
+from ..verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
+from .decode import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
+from .replay import ReplayResult, replay
+from .reread import LogFrameReader
 
 HASH_BLOCK = 1 << 20
 

@@ -18,10 +18,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from ..annotated import AnnotatedLog
+from ..annotations.reader import AnnotatedLog
+from ..annotations.records import ACCEPTED, NANOS_PER_SECOND, REJECTED, SKIPPED, FrameTimes
 from ..detector.events import Candidate, SequenceDecision
 from ..errors import GroundTruthError, UsageError
-from ..sinks.messages import ACCEPTED, NANOS_PER_SECOND, REJECTED, SKIPPED, FrameTimes
 from .groundtruth import GroundTruth
 from .metrics import Evaluation, evaluate, format_side_by_side
 

@@ -23,11 +23,11 @@ from types import TracebackType
 import cv2
 import numpy as np
 
-from .sinks.messages import NO_STAMP, FrameTimes
-from .sources import open_source
-from .sources.base import ImageMessage
-from .sources.images import decode_gray
-from .verification.geometry import GrayImage
+from ..annotations.records import NO_STAMP, FrameTimes
+from ..sources import open_source
+from ..sources.base import ImageMessage
+from ..sources.images import decode_gray
+from ..verification.geometry import GrayImage
 
 # Wanted frames closer than this are read in one range (reading a few unwanted messages is
 # cheaper than a new seek and chunk decompression).

@@ -23,10 +23,10 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 
-from .evaluation.difference_matrix import DifferenceMatrix
-from .evaluation.groundtruth import GroundTruth
-from .evaluation.metrics import Evaluation
-from .sinks.atomic import atomic_output
+from ..sinks.atomic import atomic_output
+from .difference_matrix import DifferenceMatrix
+from .groundtruth import GroundTruth
+from .metrics import Evaluation
 
 Status = Literal["tp", "fp", "reported", "rejected", "skipped"]
 

@@ -22,7 +22,7 @@ def schema_dir() -> Traversable:
     try:
         return importlib.resources.files("doseqslam_logs.schemas")
     except ModuleNotFoundError:
-        return Path(__file__).resolve().parents[1] / "schemas"
+        return Path(__file__).resolve().parents[2] / "schemas"
 
 
 def read_schema(name: str) -> str:

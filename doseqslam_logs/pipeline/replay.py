@@ -16,8 +16,8 @@ from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-from .detector import Detector, PreparedFrame, SequenceDecision
-from .frames import Frame
+from ..detector import Detector, PreparedFrame, SequenceDecision
+from ..sources.frame import Frame
 
 ProgressCallback = Callable[[int], None]
 

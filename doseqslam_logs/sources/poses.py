@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .errors import DoseqslamError, SourceError
-from .sources.base import MCAP_MAGIC
-from .sources.mcap_source import DESERIALIZERS, McapSource, describe_read_error
+from ..errors import DoseqslamError, SourceError
+from .base import MCAP_MAGIC
+from .mcap_source import DESERIALIZERS, McapSource, describe_read_error
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -202,7 +202,7 @@ def _mcap_decoder(path: Path, topic: str, schema: Any, channel: Any) -> Callable
 
 def _bag_poses(path: Path, topic: str) -> Iterator[_Pose]:
     # The sources' opener gives the same one-line errors for every bag layout.
-    from .sources.rosbags_source import _open_reader
+    from .rosbags_source import _open_reader
 
     reader = _open_reader(path)
     try:

@@ -25,9 +25,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .annotated import AnnotatedLog
-from .errors import SourceError
-from .sinks.messages import NANOS_PER_SECOND, FrameTimes
+from ..annotations.reader import AnnotatedLog
+from ..annotations.records import NANOS_PER_SECOND, FrameTimes
+from ..errors import SourceError
 
 # Metadata differences listed first, in this order; the others follow by name.
 FIRST_METADATA = (

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from ..errors import SourceError
-from ..frames import Frame
+from .frame import Frame
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff"}
 

@@ -18,10 +18,17 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Schema
 
-from .errors import SourceError
-from .sinks.mcap_writer import FRAME_TIMES_ATTACHMENT, METADATA_NAME
-from .sinks.messages import LOOP_CLOSURE, REJECTED, SEQUENCE, SKIPPED, FrameTimes
-from .sources.mcap_source import DESERIALIZERS
+from ..errors import SourceError
+from ..sources.mcap_source import DESERIALIZERS
+from .records import (
+    FRAME_TIMES_ATTACHMENT,
+    LOOP_CLOSURE,
+    METADATA_NAME,
+    REJECTED,
+    SEQUENCE,
+    SKIPPED,
+    FrameTimes,
+)
 
 TOPICS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
 

@@ -28,10 +28,10 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from .errors import ImageDecodeError, TimestampError
-from .frames import Frame
-from .sources.base import ImageMessage
-from .sources.images import decode_gray
+from ..errors import ImageDecodeError, TimestampError
+from ..sources.base import ImageMessage
+from ..sources.frame import Frame
+from ..sources.images import decode_gray
 
 TimeSource = Literal["header", "log"]
 OnError = Literal["skip", "fail"]

@@ -26,6 +26,11 @@ Verifications = Mapping[int, VerifiedDecision] | None
 NO_STAMP = -1  # header stamp of a frame whose image message has no header
 NANOS_PER_SECOND = 1_000_000_000
 OUR_TOPIC_PREFIX = "/doseqslam/"
+METADATA_NAME = "doseqslam"  # the metadata record we write (and replace when re-annotating)
+# Every frame's log time and header stamp, by frame index (FrameTimes.to_json), so that readers
+# of the output can place any frame index in time (ground truth from poses, plots, export).
+FRAME_TIMES_ATTACHMENT = "doseqslam/frame_times"
+FRAME_TIMES_MEDIA_TYPE = "application/json"
 
 
 @dataclass(frozen=True)
