@@ -6,7 +6,7 @@ from enum import IntEnum
 
 
 class ExitCode(IntEnum):
-    """Process exit codes; documented in README.md and docs/robustness.md."""
+    """Process exit codes; documented in docs/cli.md and docs/robustness.md."""
 
     OK = 0
     DIFFERENT = 1  # `diff`: the two logs differ; `batch`: some log failed

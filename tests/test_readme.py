@@ -1,7 +1,8 @@
-"""The README's shown outputs are real: its `evaluate --images`, `evaluate OUT.mcap`, `diff` and
-`export` blocks are parsed, their commands run (on the shared RTAB-Map samples, on a fresh
-annotation of the sample), and the printed lines compared with the README's, with only
-machine-dependent fields (timings) masked. The `batch` block is left out (too slow)."""
+"""The shown outputs are real: the README's quick start and the `evaluate --images`,
+`evaluate OUT.mcap`, `diff` and `export` blocks of docs/cli.md are parsed, their commands run
+(on the shared RTAB-Map samples, on a fresh annotation of the sample), and the printed lines
+compared with the shown ones, with only machine-dependent fields (timings) masked. The `batch`
+block is left out (too slow). The README's links into docs/cli.md lead to real headings."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from doseqslam_logs.cli.main import main
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
+REFERENCE = REPO / "docs" / "cli.md"
 # The fresh annotation the diff and export blocks start from (the evaluate block shows it made).
 ANNOTATE = "annotate sample_logs/drive_loops.ros2.mcap -o drive_loops.annotated.mcap"
 
@@ -47,13 +49,18 @@ class Command:
     expected: list[str] = field(default_factory=list)
 
 
-def section(heading: str) -> str:
-    """The text of the `### ` section whose heading starts with `heading`."""
-    text = README.read_text(encoding="utf-8")
-    parts = re.split(r"^### ", text, flags=re.MULTILINE)
+def section(heading: str, document: Path = REFERENCE, level: str = "###") -> str:
+    """The text of the `level` section of `document` whose heading starts with `heading`."""
+    text = document.read_text(encoding="utf-8")
+    parts = re.split(rf"^{level} ", text, flags=re.MULTILINE)
     found = [part for part in parts if part.startswith(heading)]
-    assert len(found) == 1, f"README section {heading!r} not found"
+    assert len(found) == 1, f"{document.name}: section {heading!r} not found"
     return found[0]
+
+
+def github_anchor(heading: str) -> str:
+    """The fragment GitHub gives a heading: lower case, punctuation dropped, spaces to '-'."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
 
 
 def blocks(text: str) -> list[list[Command]]:
@@ -182,8 +189,10 @@ def shell(tmp_path_factory: pytest.TempPathFactory) -> Shell:
     return shell
 
 
-def check_section(shell: Shell, heading: str, expected_blocks: int) -> None:
-    found = blocks(section(heading))
+def check_section(
+    shell: Shell, heading: str, expected_blocks: int, text: str | None = None
+) -> None:
+    found = blocks(section(heading) if text is None else text)
     assert len(found) == expected_blocks, f"{heading}: {len(found)} text blocks"
     for commands in found:
         for index, command in enumerate(commands):
@@ -198,6 +207,21 @@ def check_section(shell: Shell, heading: str, expected_blocks: int) -> None:
             if not expected and command.line.startswith("doseqslam-logs annotate"):
                 continue  # a set-up step shown without its summary line
             assert actual == expected, f"$ {command.line}"
+
+
+def test_quick_start_blocks(shell: Shell) -> None:
+    check_section(shell, "Quick start", 2, section("Quick start", README, level="##"))
+
+
+def test_readme_links_into_the_reference_reach_its_headings() -> None:
+    headings = re.findall(r"^#+ (.+)$", REFERENCE.read_text(encoding="utf-8"), re.MULTILINE)
+    anchors = {github_anchor(h) for h in headings}
+    links = re.findall(r"\(docs/cli\.md#([^)]+)\)", README.read_text(encoding="utf-8"))
+    assert len(links) >= 8 and set(links) <= anchors, set(links) - anchors
+
+
+def test_readme_stays_a_front_door() -> None:
+    assert len(README.read_bytes()) <= 8 * 1024
 
 
 def test_evaluate_images_block(shell: Shell, shared_data: Path) -> None:
