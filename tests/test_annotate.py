@@ -24,6 +24,8 @@ import pack_image_folder
 
 FORMATS = ("ros2mcap", "foxglove", "bag", "db3")
 PARAMS = Parameters(kappa_s=10.0)
+PAPER = AnnotateOptions(verification=None)  # the detector alone: fast, and all these test
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +55,7 @@ def test_annotating_each_container_gives_the_folder_loop_closures(
     packed, folder_pairs, tmp_path, fmt
 ) -> None:
     out = tmp_path / "out.mcap"
-    result = annotate_log(packed[fmt], out, PARAMS)
+    result = annotate_log(packed[fmt], out, PARAMS, PAPER)
     assert result.replay.frames == 84 and result.counts.skipped_total == 0
     log = read_annotations(out)
     pairs = {(m["query_index"], m["match_index"]) for m in log.loop_closures}
@@ -67,16 +69,16 @@ def test_output_is_byte_identical_and_the_input_untouched(packed, tmp_path) -> N
     source = packed["ros2mcap"]
     before = hashlib.sha256(source.read_bytes()).hexdigest()
     a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
-    annotate_log(source, a, PARAMS)
-    annotate_log(source, b, PARAMS, AnnotateOptions(workers=1))
+    annotate_log(source, a, PARAMS, PAPER)
+    annotate_log(source, b, PARAMS, AnnotateOptions(workers=1, verification=None))
     assert a.read_bytes() == b.read_bytes()
     assert hashlib.sha256(source.read_bytes()).hexdigest() == before
 
 
 def test_annotating_an_annotated_log_replaces_our_channels(packed, tmp_path) -> None:
     once, twice = tmp_path / "once.mcap", tmp_path / "twice.mcap"
-    annotate_log(packed["ros2mcap"], once, PARAMS)
-    annotate_log(once, twice, PARAMS.replace(threshold=0.7))
+    annotate_log(packed["ros2mcap"], once, PARAMS, PAPER)
+    annotate_log(once, twice, PARAMS.replace(threshold=0.7), PAPER)
     with twice.open("rb") as stream:
         reader = make_reader(stream)
         topics = [c.topic for c in reader.get_summary().channels.values()]
@@ -92,7 +94,7 @@ def test_annotating_an_annotated_log_replaces_our_channels(packed, tmp_path) -> 
 @pytest.mark.parametrize("fmt", ["bag", "foxglove"])
 def test_frame_times_place_every_frame_index_in_time(packed, tmp_path, fmt) -> None:
     out = tmp_path / "out.mcap"
-    annotate_log(packed[fmt], out, PARAMS, AnnotateOptions(sidecar=fmt == "bag"))
+    annotate_log(packed[fmt], out, PARAMS, AnnotateOptions(sidecar=fmt == "bag", verification=None))
     times = read_annotations(out).frame_times
     assert times is not None and len(times) == 84
     # pack_image_folder spaces the frames one second apart and stamps them with the log time.
@@ -104,7 +106,7 @@ def test_ros2_output_reads_back_with_rosbags(packed, tmp_path) -> None:
     from rosbags.highlevel import AnyReader
 
     out = tmp_path / "out.mcap"
-    annotate_log(packed["ros2mcap"], out, PARAMS)
+    annotate_log(packed["ros2mcap"], out, PARAMS, PAPER)
     with AnyReader([out]) as reader:
         ours = [c for c in reader.connections if c.topic == "/doseqslam/loop_closures"]
         msgs = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(ours)]
@@ -118,3 +120,17 @@ def test_cli_prints_a_summary_line(packed, tmp_path, capsys) -> None:
     assert code == 0 and out.exists()
     assert "84 frames of /camera/image/compressed" in text and "loop closures" in text
     assert "frames/s" in text and "0 skipped frames" in text
+
+
+@pytest.mark.parametrize("paper", [False, True])
+def test_the_library_defaults_are_the_commands(paper, tmp_path, capsys) -> None:
+    """annotate_log(log, out) is `annotate LOG -o OUT`; with Parameters() and verification
+    None it is `annotate --no-verify`."""
+    log = SAMPLE
+    settings = (Parameters(), AnnotateOptions(verification=None)) if paper else ()
+    result = annotate_log(log, tmp_path / "library.mcap", *settings)
+    command = ["annotate", str(log), "-o", str(tmp_path / "command.mcap")]
+    assert main(command + ["--no-verify"] * paper) == 0
+    assert (tmp_path / "library.mcap").read_bytes() == (tmp_path / "command.mcap").read_bytes()
+    assert (result.verification is None) is paper and result.loop_closures > 0
+    assert f"{result.loop_closures} loop closures" in capsys.readouterr().out

@@ -343,7 +343,7 @@ def test_a_crashed_worker_fails_only_its_log(tmp_path) -> None:
                 tmp_path / name,
                 tmp_path / "out" / f"{name}.annotated.mcap",
                 Parameters(),
-                AnnotateOptions(end_ns=END_NS),
+                AnnotateOptions(end_ns=END_NS, verification=None),
                 name=name,
             )
         )
@@ -427,7 +427,15 @@ def test_terminal_status_line_shows_logs_frames_and_eta() -> None:
     out, err = FakeTerminal(), FakeTerminal()
     display = ConsoleDisplay(out, err, clock=lambda: now[0])
     jobs = [
-        Job(f"/l/{n}", Path(f"/l/{n}"), Path(f"/o/{n}"), Parameters(), AnnotateOptions(), n, 100)
+        Job(
+            f"/l/{n}",
+            Path(f"/l/{n}"),
+            Path(f"/o/{n}"),
+            Parameters(),
+            AnnotateOptions(verification=None),
+            n,
+            100,
+        )
         for n in ("a.mcap", "b.mcap")
     ]
     display.start(BatchPlan(jobs, []))

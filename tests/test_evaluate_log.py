@@ -50,13 +50,13 @@ SAMPLE_GT = ["--radius", "2", "--max-heading", "20", "--min-travel", "20"]
 @pytest.fixture(scope="module")
 def annotated(tmp_path_factory) -> tuple[Path, AnnotateResult]:
     out = tmp_path_factory.mktemp("evaluate_log") / "drive_loops.annotated.mcap"
-    return out, annotate_log(LOG, out, Parameters())
+    return out, annotate_log(LOG, out, Parameters(), AnnotateOptions(verification=None))
 
 
 @pytest.fixture(scope="module")
 def sidecar(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("evaluate_log_sidecar") / "drive_loops.sidecar.mcap"
-    annotate_log(LOG, out, Parameters(), AnnotateOptions(sidecar=True))
+    annotate_log(LOG, out, Parameters(), AnnotateOptions(sidecar=True, verification=None))
     return out
 
 

@@ -12,7 +12,7 @@ from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.evaluation.difference_matrix import difference_matrix
-from doseqslam_logs.pipeline.annotate import annotate_log
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 
 pytest.importorskip("matplotlib")
 from matplotlib.figure import Figure
@@ -28,7 +28,7 @@ GT = SAMPLES / "drive_loops.gt.npz"
 @pytest.fixture(scope="module")
 def annotated(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("plots") / "drive_loops.annotated.mcap"
-    annotate_log(LOG, out, Parameters())
+    annotate_log(LOG, out, Parameters(), AnnotateOptions(verification=None))
     return out
 
 

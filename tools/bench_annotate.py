@@ -122,7 +122,7 @@ def measure_annotate(
     pipeline = _module("doseqslam_logs.pipeline.annotate", "doseqslam_logs.annotate")
     AnnotateOptions, annotate_log = pipeline.AnnotateOptions, pipeline.annotate_log
     topic, end_ns = _end_ns(log, minutes)
-    extra: dict[str, Any] = {}
+    extra: dict[str, Any] = {"verification": None}  # --no-verify unless `verify`
     params = Parameters()
     if verify:  # what the annotate command does by default
         from doseqslam_logs import verification

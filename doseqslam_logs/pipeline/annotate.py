@@ -36,7 +36,13 @@ from ..sources.base import MCAP_MAGIC
 from ..sources.camera_info import read_camera_info
 from ..sources.frame import Frame
 from ..sources.salvage import SalvageReport, salvage_mcap
-from ..verification import Intrinsics, VerificationParameters, VerificationStats
+from ..verification import (
+    DEFAULT_VERIFICATION,
+    Intrinsics,
+    VerificationParameters,
+    VerificationStats,
+    verified_detector_parameters,
+)
 from ..verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
 from .decode import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
 from .replay import ReplayResult, replay
@@ -62,9 +68,9 @@ class AnnotateOptions:
     # Threads that prepare frames (frame vectors, features) ahead of the detector, and that
     # verify the candidates after it; the output does not depend on it.
     workers: int = 2
-    # Geometric verification of the candidate pairs (None: off, the paper's behaviour). The
-    # `annotate` command turns it on and raises th to VERIFIED_THRESHOLD (cli.params_args).
-    verification: VerificationParameters | None = None
+    # Geometric verification of the candidate pairs, on by default as in the `annotate`
+    # command (None: off, the paper's decision, `annotate --no-verify`).
+    verification: VerificationParameters | None = DEFAULT_VERIFICATION
     # Intrinsics for the essential matrix; None: the log's CameraInfo when it has one.
     intrinsics: Intrinsics | None = None
     # Memory for cached per-frame verification features (evicted frames are re-read), shared
@@ -239,12 +245,17 @@ def _is_mcap(path: Path) -> bool:
 def annotate_log(
     log: str | Path,
     output: str | Path,
-    params: Parameters,
+    params: Parameters | None = None,
     options: AnnotateOptions | None = None,
     progress: Callable[[int], None] | None = None,
     expected: Callable[[int | None], None] | None = None,
 ) -> AnnotateResult:
     """Replay the detector over the log's camera topic and write the annotated MCAP.
+
+    The defaults are the `annotate` command's: `annotate_log(log, out)` writes the bytes that
+    `doseqslam-logs annotate LOG -o OUT` writes (verification on, the detector's verified
+    defaults); `annotate_log(log, out, Parameters(), AnnotateOptions(verification=None))` is
+    `annotate --no-verify`. Parameters given are used as they are.
 
     `progress(frames done)` is called after each frame, `expected(image messages or None)`
     once the topic is known. The input is only read; the output appears whole or not at all.
@@ -255,6 +266,8 @@ def annotate_log(
     """
     log, output = Path(log), Path(output)
     options = options or AnnotateOptions()
+    if params is None:
+        params = verified_detector_parameters() if options.verification else Parameters()
     if log.exists():  # before the detector runs, not after
         refuse_same_file(log, output)
     if not (options.recover and _is_mcap(log)):
