@@ -89,6 +89,13 @@ def test_same_parameters_twice_is_equal(runs, capsys) -> None:
     assert out.rstrip().endswith("result: reported loop closures are the same (exit 0)")
 
 
+def test_diff_logs_takes_paths_as_the_command_does(runs) -> None:
+    by_path = diff_logs(runs["base"], runs["threshold"])
+    read = diff_logs(read_annotations(runs["base"]), read_annotations(runs["threshold"]))
+    assert by_path.to_json_dict() == read.to_json_dict() and not by_path.equal
+    assert diff_logs(runs["base"], runs["again"]).equal
+
+
 def test_sidecar_equals_the_full_copy_of_the_same_run(runs, capsys) -> None:
     code, out, _ = run_cli(capsys, runs["sidecar"], runs["base"], "--json")
     doc = json.loads(out)

@@ -16,6 +16,8 @@ from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.cli.main import main
+from doseqslam_logs.errors import UsageError
+from doseqslam_logs.export import export_log
 from doseqslam_logs.export.loops import COLUMNS, frame_times_ns, loop_closure_row, matched_index
 from doseqslam_logs.export.pose_graph import verified_body_rotation
 from doseqslam_logs.sources.poses import read_poses
@@ -344,3 +346,14 @@ def test_verified_rotation_becomes_a_body_yaw(degrees: float) -> None:
     assert pitch == pytest.approx(0.0, abs=1e-9) and roll == pytest.approx(0.0, abs=1e-9)
     assert verified_body_rotation({**lc, "has_relative_pose": False}) is None
     assert verified_body_rotation({**lc, "rotation_xyzw": [math.nan] * 4}) is None
+
+
+def test_export_log_gives_the_commands_text(annotated: Path, tmp_path, capsys) -> None:
+    code, out, _ = export(capsys, str(annotated), "--format", "csv")
+    result = export_log(annotated, "csv")
+    assert code == 0 and "".join(result.chunks) == out and out.count("\n") > 20
+    written = export_log(annotated, "csv", output=tmp_path / "loops.csv")
+    assert (tmp_path / "loops.csv").read_text() == out and list(written.chunks) == []
+    assert written.summary == result.summary
+    with pytest.raises(UsageError, match="unknown export format"):
+        export_log(annotated, "kml")

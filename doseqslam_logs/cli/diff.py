@@ -13,7 +13,6 @@ import json
 import math
 from pathlib import Path
 
-from ..annotations.reader import read_annotations
 from ..errors import ExitCode, SourceError, UsageError
 from ..evaluation.diff import diff_logs
 
@@ -53,8 +52,7 @@ def run(args: argparse.Namespace) -> int:
     tolerance = tolerance_ns(args.tolerance_ms)
     try:
         # A missing or non-annotated input is a usage error here (exit 2, like diff(1)).
-        log_a, log_b = read_annotations(args.a), read_annotations(args.b)
-        result = diff_logs(log_a, log_b, tolerance)
+        result = diff_logs(args.a, args.b, tolerance)
     except SourceError as exc:
         raise UsageError(str(exc)) from exc
     if args.json:

@@ -12,11 +12,8 @@ import math
 import sys
 from pathlib import Path
 
-from ..annotations.reader import read_annotations
-from ..errors import UsageError
-from ..export import FORMATS, ExportOptions
+from ..export import FORMATS, ExportOptions, export_log
 from ..export.base import DEFAULT_LOOP_ROTATION_SIGMA_DEG, DEFAULT_LOOP_TRANSLATION_SIGMA_M
-from ..sinks.atomic import atomic_output
 from .annotate import positive_int
 
 
@@ -108,18 +105,10 @@ def _options(args: argparse.Namespace) -> ExportOptions:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.output is not None and args.output.resolve() == args.log.resolve():
-        raise UsageError(f"{args.output}: the output would replace the input")
-    log = read_annotations(args.log)
-    result = FORMATS[args.format].export(log, _options(args))
+    result = export_log(args.log, args.format, _options(args), args.output)
     if args.output is None:
         for chunk in result.chunks:
             sys.stdout.write(chunk)
         sys.stdout.flush()
-        print(f"{args.format}: {result.summary}", file=sys.stderr)
-    else:
-        with atomic_output(args.output) as stream:
-            for chunk in result.chunks:
-                stream.write(chunk.encode())
-        print(f"{args.output}: {result.summary}", file=sys.stderr)
+    print(f"{args.output or args.format}: {result.summary}", file=sys.stderr)
     return 0

@@ -23,9 +23,10 @@ import math
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-from ..annotations.reader import AnnotatedLog
+from ..annotations.reader import AnnotatedLog, read_annotations
 from ..annotations.records import NANOS_PER_SECOND, FrameTimes
 from ..errors import SourceError
 
@@ -371,12 +372,18 @@ def summarize(log: AnnotatedLog, reported: int) -> LogSummary:
     )
 
 
-def diff_logs(a: AnnotatedLog, b: AnnotatedLog, tolerance_ns: int = 0) -> LogDiff:
-    """Compare the reported loop closures, verdicts, parameters and metadata of two logs.
+def diff_logs(
+    a: AnnotatedLog | str | Path, b: AnnotatedLog | str | Path, tolerance_ns: int = 0
+) -> LogDiff:
+    """Compare the reported loop closures, verdicts, parameters and metadata of two logs
+    (annotated logs or sidecars, as paths or already read), as the `diff` command does.
 
-    Raises ValueError for a negative tolerance, SourceError for a loop closure that lacks
-    the fields of the contract or names a frame outside the log's frame times.
+    Raises ValueError for a negative tolerance, SourceError for an input that is not an
+    annotated log, or a loop closure that lacks the fields of the contract or names a frame
+    outside the log's frame times.
     """
+    a = a if isinstance(a, AnnotatedLog) else read_annotations(a)
+    b = b if isinstance(b, AnnotatedLog) else read_annotations(b)
     reported_a, reported_b = _reported_pairs(a), _reported_pairs(b)
     summary_a, summary_b = summarize(a, len(reported_a)), summarize(b, len(reported_b))
     return LogDiff(

@@ -7,10 +7,15 @@ A new format is one module with an `EXPORTER` (see `base.Exporter`) plus one ent
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from ..annotations.reader import read_annotations
+from ..errors import UsageError
+from ..sinks.atomic import atomic_output
 from . import csv_format, g2o_format, jsonl_format, tum_format
 from .base import Exporter, ExportOptions, ExportResult
 
-__all__ = ["FORMATS", "ExportOptions", "ExportResult", "Exporter"]
+__all__ = ["FORMATS", "ExportOptions", "ExportResult", "Exporter", "export_log"]
 
 FORMATS: dict[str, Exporter] = {
     exporter.name: exporter
@@ -21,3 +26,30 @@ FORMATS: dict[str, Exporter] = {
         g2o_format.EXPORTER,
     )
 }
+
+
+def export_log(
+    log: str | Path,
+    format: str,
+    options: ExportOptions | None = None,
+    output: str | Path | None = None,
+) -> ExportResult:
+    """Export an annotated log (or sidecar) in `format`, a name of FORMATS, as the `export`
+    command does. With `output`, the text is written there atomically and the result holds
+    only the summary; without, the caller writes `result.chunks` (they are built lazily).
+
+    Raises UsageError (unknown format, output that would replace the input, unusable input
+    for the format), SourceError (not an annotated log), OutputError.
+    """
+    if format not in FORMATS:
+        raise UsageError(f"unknown export format {format!r} (formats: {', '.join(FORMATS)})")
+    log = Path(log)
+    if output is not None and Path(output).resolve() == log.resolve():
+        raise UsageError(f"{output}: the output would replace the input")
+    result = FORMATS[format].export(read_annotations(log), options or ExportOptions())
+    if output is None:
+        return result
+    with atomic_output(Path(output)) as stream:
+        for chunk in result.chunks:
+            stream.write(chunk.encode())
+    return ExportResult((), result.summary)
