@@ -12,10 +12,14 @@ from typing import Any
 
 import pytest
 
-from doseqslam_logs.cli import evaluate as evaluate_cli
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ExitCode
-from doseqslam_logs.verification import VERIFIED_THRESHOLD, VerificationParameters
+from doseqslam_logs.evaluation.folder_run import FolderEvaluation, evaluate_folder
+from doseqslam_logs.verification import (
+    VERIFIED_THRESHOLD,
+    VerificationParameters,
+    verified_detector_parameters,
+)
 
 # What `evaluate --images` printed on the RTAB-Map samples before verification existed (the
 # paper's decision); only the speed varies.
@@ -56,24 +60,31 @@ def _args(shared_data: Path) -> list[object]:
 
 
 @pytest.fixture(scope="module")
-def verified_runs(shared_data: Path) -> tuple[str, dict[str, Any]]:
-    """The default (verified) report as text and as --json. The verification stage runs once
-    for both (the detector's decisions are the same; --json only changes the printing)."""
-    real = evaluate_cli._verify
-    memo: list[Any] = []
+def verified_run(shared_data: Path) -> FolderEvaluation:
+    """What `evaluate --images ... --set kappa_s=10` runs (verification on, its defaults)."""
+    folder = shared_data / "rtabmap_samples_loop"
+    params = verified_detector_parameters(kappa_s=10.0)
+    return evaluate_folder(folder / "images", 1.0, folder / "samples_GT.bmp", params)
 
-    def verify_once(*args: Any) -> Any:
-        if not memo:
-            memo.append(real(*args))
-        return memo[0]
 
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(evaluate_cli, "_verify", verify_once)
-        code, text = _run(*_args(shared_data))
-        assert code == 0
-        code, out = _run(*_args(shared_data), "--json")
-        assert code == 0
-    return text, json.loads(out)
+@pytest.fixture(scope="module")
+def verified_runs(verified_run: FolderEvaluation) -> tuple[str, dict[str, Any]]:
+    """The default (verified) report as text and as --json, of one run."""
+    return verified_run.format_report(), json.loads(json.dumps(verified_run.to_json_dict()))
+
+
+def test_the_command_prints_the_librarys_report(shared_data, verified_runs) -> None:
+    code, text = _run(*_args(shared_data))
+    timing = re.compile(r"\d+ frames/s|\d+\.\d ms each, \d+\.\d s")
+    assert code == 0
+    assert timing.sub("<t>", text) == timing.sub("<t>", verified_runs[0] + "\n")
+    code, out = _run(*_args(shared_data), "--json")
+    document = json.loads(out)
+    for doc in (document, verified_runs[1]):
+        doc.pop("wall_time_s")
+        doc["verification_cost"].pop("ms_per_pair")
+        doc["verification_cost"].pop("wall_time_s")
+    assert code == 0 and document == verified_runs[1]
 
 
 @pytest.fixture(scope="module")

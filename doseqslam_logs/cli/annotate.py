@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
+from ..verification.summary import verification_summary
 from .params_args import (
     add_parameter_options,
     add_verification_options,
@@ -16,7 +17,6 @@ from .params_args import (
 )
 from .progress import Progress
 from .times import parse_time_ns
-from .verification_summary import verification_summary
 
 
 def positive_int(text: str) -> int:

@@ -13,24 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
-from contextlib import nullcontext
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-from .. import __version__
-from ..detector import Parameters, make_detector
-from ..detector.events import SequenceDecision
-from ..errors import GroundTruthError, UsageError
+from ..errors import UsageError
+from ..evaluation.folder_run import evaluate_folder
 from ..evaluation.groundtruth import load_ground_truth
-from ..evaluation.metrics import Evaluation, evaluate, format_report, format_side_by_side
-from ..evaluation.verified import verified_decisions
-from ..pipeline.replay import ReplayResult, replay
-from ..pipeline.reread import FolderFrameReader
-from ..sources.image_folder import folder_frames, list_images
-from ..verification import Intrinsics, VerificationParameters, VerificationStats
-from ..verification.stage import verify_in_threads
+from ..sources.image_folder import list_images
 from . import evaluate_log
 from .params_args import (
     add_parameter_options,
@@ -41,11 +29,6 @@ from .params_args import (
     verification_from_args,
 )
 from .progress import Progress
-from .verification_summary import verification_summary
-
-# Threads that verify the candidates (each with its own feature cache); results do not depend
-# on it.
-VERIFY_THREADS = 2
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -126,135 +109,29 @@ def _check_images_args(args: argparse.Namespace) -> None:
         raise UsageError(f"{', '.join(used)}: only with an annotated log (OUT.mcap)")
 
 
-@dataclass(frozen=True)
-class _FolderVerification:
-    """What the verification stage decided over the folder's run, and what it cost."""
-
-    params: VerificationParameters
-    intrinsics: Intrinsics | None
-    decisions: list[SequenceDecision]  # reduced to their accepted pairs (verified_decisions)
-    stats: VerificationStats  # seconds summed over the threads
-    wall_s: float  # of the whole stage
-
-    def describe(self) -> str:
-        """The header's account: hash, pairs verified and accepted, and the cost."""
-        stats = self.stats
-        pose = (
-            "essential matrix, intrinsics from --intrinsics"
-            if self.intrinsics
-            else "fundamental matrix, no intrinsics"
-        )
-        counts = verification_summary(stats, self.wall_s, pose)
-        verified = f"{stats.candidates} candidate pairs verified"
-        return f"verification {self.params.hash}: {verified}, {counts}"
-
-    def to_json_dict(self) -> dict[str, Any]:
-        k, stats = self.intrinsics, self.stats
-        return {
-            "verification": "on",
-            "verification_hash": self.params.hash,
-            "verification_parameters": self.params.to_dict(),
-            "intrinsics": None if k is None else [k.fx, k.fy, k.cx, k.cy],
-            "verification_cost": {
-                "candidate_pairs": stats.candidates,
-                "accepted_pairs": stats.accepted,
-                "accepted_on_alternatives": stats.from_alternatives,
-                "frame_pairs_checked": stats.pairs,
-                "ms_per_pair": round(stats.ms_per_pair, 3),
-                "wall_time_s": round(self.wall_s, 3),
-            },
-        }
-
-
-_VERIFICATION_OFF: dict[str, Any] = {
-    "verification": "off",
-    "verification_hash": None,
-    "verification_parameters": None,
-    "intrinsics": None,
-    "verification_cost": None,
-}
-
-
-def _verify(
-    args: argparse.Namespace, images: list[Path], result: ReplayResult
-) -> _FolderVerification | None:
-    """The verification stage over the folder's decisions (None with --no-verify)."""
-    params = verification_from_args(args)
-    if params is None:
-        return None
-    intrinsics = intrinsics_from_args(args)
-    start = time.perf_counter()
-    reader = FolderFrameReader(images)  # stateless: one for every thread
-    verified, stats = verify_in_threads(
-        result.decisions, lambda: nullcontext(reader), params, intrinsics, VERIFY_THREADS
-    )
-    wall_s = time.perf_counter() - start
-    return _FolderVerification(params, intrinsics, verified_decisions(verified), stats, wall_s)
-
-
 def _run_images(args: argparse.Namespace) -> int:
     _check_images_args(args)
     params = run_parameters(args)  # as annotate: th = VERIFIED_THRESHOLD unless given
-    verification_from_args(args)  # a bad --vset fails before the run
-    intrinsics_from_args(args)
+    verification = verification_from_args(args)  # bad options fail before the run
+    intrinsics = intrinsics_from_args(args)
     gt = load_ground_truth(args.gt, args.gt_variable)
-    images = list_images(args.images)
-    if len(images) != gt.n_frames:  # checked before the run: a wrong GT file is the usual cause
-        raise GroundTruthError(
-            f"{args.gt}: ground truth has {gt.n_frames} frames but {args.images} has "
-            f"{len(images)} images"
-        )
-    detector = make_detector(params)
-    progress = Progress(len(images), "evaluate")
+    progress = Progress(len(list_images(args.images)), "evaluate")
     try:
-        result = replay(folder_frames(args.images, args.fps), detector, progress)
+        run = evaluate_folder(
+            args.images,
+            args.fps,
+            gt,
+            params,
+            verification,
+            intrinsics,
+            args.tolerance,
+            progress=progress,
+        )
     finally:
         progress.close()
-    verification = _verify(args, images, result)
-    evaluation = evaluate(result.decisions, gt, params.threshold, args.tolerance)
-    verified = None
-    if verification is not None:
-        verified = evaluate(verification.decisions, gt, params.threshold, args.tolerance)
     if args.json:
-        print(
-            json.dumps(
-                _json_document(args, params, result, evaluation, verified, verification), indent=2
-            )
-        )
-        return 0
-    headline = (
-        f"{params.method} on {args.images} at {args.fps:g} fps "
-        f"(features: {result.feature_detector}, parameters {params.hash}, "
-        f"{result.frames_per_second:.0f} frames/s)"
-    )
-    if verification is None:  # the paper's report, unchanged
-        print(headline)
-        print(format_report(evaluation))
-        return 0
-    print(f"{headline}; {verification.describe()}")
-    note = "given" if threshold_given(args) else "default with verification"
-    print(format_side_by_side(evaluation, verified, note))
+        print(json.dumps(run.to_json_dict(), indent=2))
+    else:
+        note = "given" if threshold_given(args) else "default with verification"
+        print(run.format_report(note))
     return 0
-
-
-def _json_document(
-    args: argparse.Namespace,
-    params: Parameters,
-    result: ReplayResult,
-    evaluation: Evaluation,
-    verified: Evaluation | None,
-    verification: _FolderVerification | None,
-) -> dict[str, Any]:
-    return {
-        "tool_version": __version__,
-        "images": str(args.images),
-        "fps": args.fps,
-        "method": params.method,
-        "feature_detector": result.feature_detector,
-        "parameters_hash": params.hash,
-        "wall_time_s": round(result.wall_time_s, 3),
-        "parameters": params.to_dict(),
-        **(_VERIFICATION_OFF if verification is None else verification.to_json_dict()),
-        **evaluation.to_json_dict(),
-        "verified": None if verified is None else verified.to_json_dict(),
-    }

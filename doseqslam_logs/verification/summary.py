@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..verification import VerificationStats
+from .stage import VerificationStats
 
 
 def verification_summary(stats: VerificationStats, wall_s: float, model: str) -> str:
