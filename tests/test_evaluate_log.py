@@ -16,10 +16,10 @@ from hypothesis import strategies as st
 
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.annotations.records import FrameTimes
-from doseqslam_logs.cli import evaluate_log
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import ExitCode, GroundTruthError
+from doseqslam_logs.evaluation import log_run
 from doseqslam_logs.evaluation.groundtruth import GroundTruth, load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
 from doseqslam_logs.evaluation.pose_ground_truth import (
@@ -67,6 +67,19 @@ def run_cli(capsys, *argv: object) -> tuple[int, str, str]:
 
 
 # -- the figures --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("json_output", [False, True])
+def test_evaluate_log_gives_the_commands_report(annotated, capsys, json_output) -> None:
+    out, _ = annotated
+    options = log_run.LogEvaluationOptions(gt_topic=POSES, radius=2.0, max_heading=20.0)
+    report = log_run.evaluate_log(out, options)
+    argv = ["evaluate", out, "--gt-topic", POSES, "--radius", "2", "--max-heading", "20"]
+    code, stdout, _ = run_cli(capsys, *argv, *["--json"] * json_output)
+    expected = (
+        json.dumps(report.to_json_dict(), indent=2) if json_output else report.format_report()
+    )
+    assert code == 0 and stdout == expected + "\n" and report.result.raw.tp > 0
 
 
 def test_rebuilt_decisions_are_the_runs(annotated) -> None:
@@ -197,7 +210,7 @@ def test_verified_figures_of_a_verified_run_equal_the_in_memory_ones(verified_ru
 def test_cli_reports_verified_figures_side_by_side(annotated, capsys, monkeypatch) -> None:
     out, _ = annotated
     log = with_verification(read_annotations(out))
-    monkeypatch.setattr(evaluate_log, "read_annotations", lambda path: log)
+    monkeypatch.setattr(log_run, "read_annotations", lambda path: log)
     code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt", GT, "--json")
     doc = json.loads(stdout)
     assert code == 0 and doc["verified"]["fp"] == 1 and doc["tp"] == 47

@@ -309,14 +309,14 @@ def test_ranged_reads_do_not_parse_the_summary_again(monkeypatch) -> None:
 
 def test_pictures_draw_skipped_pairs_apart_from_rejected_ones(strided_log) -> None:
     plots = pytest.importorskip("doseqslam_logs.evaluation.plots")
-    from doseqslam_logs.cli.evaluate_log import _detections
+    from doseqslam_logs.evaluation.log_run import detections
 
     log = read_annotations(strided_log)
     gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
-    statuses = Counter(d.status for d in _detections(plots, log, gt, 0))
+    statuses = Counter(d.status for d in detections(plots, log, gt, 0))
     verdicts = Counter(lc["verification"] for lc in log.loop_closures)
     assert statuses["skipped"] == verdicts["skipped"] > 0
     assert statuses["rejected"] == verdicts["rejected"]
     assert statuses["tp"] + statuses["fp"] == verdicts["accepted"]
-    assert list(plots._by_status(_detections(plots, log, gt, 0)))[:2] == ["skipped", "rejected"]
+    assert list(plots._by_status(detections(plots, log, gt, 0)))[:2] == ["skipped", "rejected"]
     assert plots.LABELS["skipped"] == "not checked (high frame rate)"
