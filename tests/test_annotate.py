@@ -22,6 +22,8 @@ import itertools
 
 import pack_image_folder
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 FORMATS = ("ros2mcap", "foxglove", "bag", "db3")
 PARAMS = Parameters(kappa_s=10.0)
 PAPER = AnnotateOptions(verification=None)  # the detector alone: fast, and all these test

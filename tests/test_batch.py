@@ -34,6 +34,8 @@ from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import UsageError
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log, source_sha256
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "sample_logs"
 T0_NS = 1_700_000_000 * 10**9  # first frame of every sample

@@ -11,6 +11,8 @@ from test_batch import END, SAMPLES, run_batch_cli, truncated_copy
 
 from doseqslam_logs.batch.manifest import read_entries
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 ray = pytest.importorskip("ray")
 
 

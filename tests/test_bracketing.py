@@ -38,6 +38,8 @@ from doseqslam_logs.verification.geometry import (
     match_camera_direction,
 )
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 # (log, stem, measured true pairs with the defaults): every committed sample log (sample_logs/
 # README.md) at precision 100 %.

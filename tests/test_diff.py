@@ -26,6 +26,8 @@ from doseqslam_logs.evaluation.diff import (
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.verification import VerificationParameters
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 ROS2_LOG = SAMPLES / "drive_loops.ros2.mcap"
 FOXGLOVE_LOG = SAMPLES / "drive_loops.foxglove.mcap"

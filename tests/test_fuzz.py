@@ -41,6 +41,8 @@ from doseqslam_logs.sources.images import decode_gray
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_bad_inputs as corpus
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 PER_FILE_S = 20  # one mutant through every step; a healthy run takes well under a second
 ACCEPTED = {0, ExitCode.UNREADABLE_INPUT, ExitCode.NO_CAMERA, ExitCode.BAD_IMAGE}
 EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "0"))

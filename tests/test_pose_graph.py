@@ -30,6 +30,8 @@ from doseqslam_logs.export.loops import frame_times_ns, matched_index
 from doseqslam_logs.export.pose_graph import verified_body_rotation
 from doseqslam_logs.sources.poses import read_poses
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 gtsam = pytest.importorskip("gtsam")
 
 REPO = Path(__file__).resolve().parents[1]

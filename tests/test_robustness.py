@@ -42,6 +42,8 @@ from doseqslam_logs.sources.images import decode_gray
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_bad_inputs
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 REPO = Path(__file__).resolve().parents[1]
 FAIL = ("--on-error", "fail")
 RECOVER = ("--recover",)

@@ -29,6 +29,8 @@ import compare_sample_logs as compare_samples  # noqa: E402
 import make_sample_logs as generator  # noqa: E402
 import other_processor  # noqa: E402
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 # (log, ground truth, minimum recall at the default threshold, as docs/results.md documents)
 CASES = [
     ("drive_loops.ros2.mcap", "drive_loops", 0.35),

@@ -32,6 +32,8 @@ from doseqslam_logs.verification import (
 )
 from doseqslam_logs.verification.stage import FeatureCache
 
+pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
+
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOOPS = SAMPLES / "drive_loops.ros2.mcap"
 VERIFIED = verified_detector_parameters()
