@@ -89,21 +89,6 @@ def _check_log_args(args: argparse.Namespace) -> None:
             f"{', '.join(parameters)}: the run's parameters come from {args.log}; "
             "detector options apply to --images only"
         )
-    if (args.gt is None) == (args.gt_topic is None):
-        raise UsageError("evaluate OUT.mcap needs exactly one of --gt GTFILE or --gt-topic TOPIC")
-    if args.gt_topic is not None and args.radius is None:
-        raise UsageError("--gt-topic needs --radius R (metres)")
-    pose_only = [
-        flag
-        for name, flag in _LOG_OPTIONS.items()
-        if name in ("radius", "max_heading", "min_travel") and getattr(args, name) is not None
-    ]
-    if args.gt_topic is None and pose_only:
-        raise UsageError(f"{', '.join(pose_only)}: only with --gt-topic")
-    if args.gt_topic is not None and args.gt_variable is not None:
-        raise UsageError("--gt-variable: only with --gt")
-    if args.poses_topic is not None and args.plot is None:
-        raise UsageError("--poses-topic only draws the trajectory: use it with --plot DIR")
 
 
 def run_log(args: argparse.Namespace) -> int:

@@ -79,10 +79,7 @@ def evaluate_log(log: str | Path, options: LogEvaluationOptions | None = None) -
     plots, ...), SourceError (not an annotated log), GroundTruthError.
     """
     options = options or LogEvaluationOptions()
-    if (options.gt is None) == (options.gt_topic is None):
-        raise UsageError("evaluate OUT.mcap needs exactly one of --gt GTFILE or --gt-topic TOPIC")
-    if options.gt_topic is not None and options.radius is None:
-        raise UsageError("--gt-topic needs --radius R (metres)")
+    _check(options)
     plots = _plots_module() if options.plot is not None else None  # fail before the work
     annotated = read_annotations(log)
     inputs = _Inputs(options, annotated)
@@ -92,6 +89,30 @@ def evaluate_log(log: str | Path, options: LogEvaluationOptions | None = None) -
         result = _renamed(result, gt.source)
     written = [] if plots is None else _draw(plots, inputs, gt, result)
     return LogReport(annotated, gt_info, result, written)
+
+
+# The pose ground truth's criteria, by option name, as the command spells them.
+_POSE_CRITERIA = {
+    "radius": "--radius",
+    "max_heading": "--max-heading",
+    "min_travel": "--min-travel",
+}
+
+
+def _check(options: LogEvaluationOptions) -> None:
+    """Raises UsageError for options that do not go together (named as the command spells
+    them: the library's names are the same, with underscores)."""
+    if (options.gt is None) == (options.gt_topic is None):
+        raise UsageError("evaluate OUT.mcap needs exactly one of --gt GTFILE or --gt-topic TOPIC")
+    if options.gt_topic is not None and options.radius is None:
+        raise UsageError("--gt-topic needs --radius R (metres)")
+    criteria = [flag for name, flag in _POSE_CRITERIA.items() if getattr(options, name) is not None]
+    if options.gt_topic is None and criteria:
+        raise UsageError(f"{', '.join(criteria)}: only with --gt-topic")
+    if options.gt_topic is not None and options.gt_variable is not None:
+        raise UsageError("--gt-variable: only with --gt")
+    if options.poses_topic is not None and options.plot is None:
+        raise UsageError("--poses-topic only draws the trajectory: use it with --plot DIR")
 
 
 def _plots_module() -> ModuleType:
