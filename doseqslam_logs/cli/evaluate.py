@@ -18,7 +18,6 @@ from pathlib import Path
 from ..errors import UsageError
 from ..evaluation.folder_run import evaluate_folder
 from ..evaluation.groundtruth import load_ground_truth
-from ..sources.image_folder import list_images
 from . import evaluate_log
 from .params_args import (
     add_parameter_options,
@@ -115,7 +114,11 @@ def _run_images(args: argparse.Namespace) -> int:
     verification = verification_from_args(args)  # bad options fail before the run
     intrinsics = intrinsics_from_args(args)
     gt = load_ground_truth(args.gt, args.gt_variable)
-    progress = Progress(len(list_images(args.images)), "evaluate")
+    progress = Progress(None, "evaluate")
+
+    def expected(images: int) -> None:
+        progress.total = images
+
     try:
         run = evaluate_folder(
             args.images,
@@ -126,6 +129,7 @@ def _run_images(args: argparse.Namespace) -> int:
             intrinsics,
             args.tolerance,
             progress=progress,
+            expected=expected,
         )
     finally:
         progress.close()

@@ -25,7 +25,7 @@ from ..verification import (
     Intrinsics,
     VerificationParameters,
     VerificationStats,
-    verified_detector_parameters,
+    command_detector_parameters,
 )
 from ..verification.stage import verify_in_threads
 from ..verification.summary import verification_summary
@@ -139,18 +139,20 @@ def evaluate_folder(
     tolerance: int = 0,
     gt_variable: str | None = None,
     progress: Callable[[int], None] | None = None,
+    expected: Callable[[int], None] | None = None,
 ) -> FolderEvaluation:
     """Replay the detector over the folder's images (natural file-name order, stamped at `fps`),
     verify its candidates, and score both against `gt` (one row per image), as
     `evaluate --images` does. params=None takes the command's defaults: the verified ones with
-    verification, else the paper's.
+    verification, else the paper's. `expected(images)` is called once the folder is listed,
+    `progress(frames done)` after each frame.
 
     Raises SourceError (no images), GroundTruthError (unreadable ground truth, or not one row
     per image: checked before the run), ParameterError.
     """
     images = Path(images)
     if params is None:
-        params = verified_detector_parameters() if verification else Parameters()
+        params = command_detector_parameters(verification)
     truth = gt if isinstance(gt, GroundTruth) else load_ground_truth(gt, gt_variable)
     files = list_images(images)
     if len(files) != truth.n_frames:  # before the run: a wrong GT file is the usual cause
@@ -158,6 +160,8 @@ def evaluate_folder(
             f"{truth.source}: ground truth has {truth.n_frames} frames but {images} has "
             f"{len(files)} images"
         )
+    if expected is not None:
+        expected(len(files))
     result = replay(folder_frames(images, fps), make_detector(params), progress)
     checked = None if verification is None else _verify(files, result, verification, intrinsics)
     score = evaluate(result.decisions, truth, params.threshold, tolerance)

@@ -41,7 +41,7 @@ from ..verification import (
     Intrinsics,
     VerificationParameters,
     VerificationStats,
-    verified_detector_parameters,
+    command_detector_parameters,
 )
 from ..verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
 from .decode import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
@@ -267,7 +267,7 @@ def annotate_log(
     log, output = Path(log), Path(output)
     options = options or AnnotateOptions()
     if params is None:
-        params = verified_detector_parameters() if options.verification else Parameters()
+        params = command_detector_parameters(options.verification)
     if log.exists():  # before the detector runs, not after
         refuse_same_file(log, output)
     if not (options.recover and _is_mcap(log)):

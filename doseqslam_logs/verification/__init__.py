@@ -25,6 +25,7 @@ from .params import (
     VERIFIED_SEGMENTATION,
     VERIFIED_THRESHOLD,
     VerificationParameters,
+    command_detector_parameters,
     verified_defaults,
     verified_detector_parameters,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "Verifier",
     "best_verdict",
     "bracketed_match",
+    "command_detector_parameters",
     "extract_features",
     "match_camera_direction",
     "refine_match",

@@ -190,3 +190,9 @@ def verified_detector_parameters(**changes: Any) -> Parameters:
         ParameterError: for an unknown or invalid parameter.
     """
     return Parameters().replace(**verified_defaults(changes.__contains__), **changes)
+
+
+def command_detector_parameters(verification: VerificationParameters | None) -> Parameters:
+    """The detector parameters the commands run when none are given: the verified defaults with
+    verification on, the paper's (`Parameters()`) with it off (`--no-verify`)."""
+    return verified_detector_parameters() if verification is not None else Parameters()
