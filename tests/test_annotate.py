@@ -60,11 +60,11 @@ def test_annotating_each_container_gives_the_folder_loop_closures(
     result = annotate_log(packed[fmt], out, PARAMS, PAPER)
     assert result.replay.frames == 84 and result.counts.skipped_total == 0
     log = read_annotations(out)
-    pairs = {(m["query_index"], m["match_index"]) for m in log.loop_closures}
+    pairs = {(m.query.index, m.match.index) for m in log.loop_closures}
     assert pairs == folder_pairs and len(pairs) >= 5
     assert len(log.sequences) == len(result.replay.decisions)
-    assert log.metadata["parameters_hash"] == PARAMS.hash
-    assert log.metadata["frames_used"] == "84" and log.metadata["feature_detector"] == "sift"
+    assert log.metadata.parameters_hash == PARAMS.hash
+    assert log.metadata.frames_used == 84 and log.metadata.feature_detector == "sift"
 
 
 def test_output_is_byte_identical_and_the_input_untouched(packed, tmp_path) -> None:
@@ -90,7 +90,7 @@ def test_annotating_an_annotated_log_replaces_our_channels(packed, tmp_path) -> 
     assert attachments.count("doseqslam/frame_times") == 1
     again = read_annotations(twice)
     assert again.parameters["threshold"] == 0.7
-    assert all(m["f"] < 0.7 for m in again.loop_closures)
+    assert all(m.f < 0.7 for m in again.loop_closures)
 
 
 @pytest.mark.parametrize("fmt", ["bag", "foxglove"])

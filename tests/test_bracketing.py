@@ -61,9 +61,9 @@ def _verified(log: Path, out: Path, **changes: object) -> list[dict[str, object]
 
 def _reported_truth(loop_closures: list[dict[str, object]], stem: str) -> np.ndarray:
     gt = load_ground_truth(SAMPLES / f"{stem}.gt.npz")
-    reported = [lc for lc in loop_closures if lc["verification"] == "accepted"]
-    q = np.array([lc["query_index"] for lc in reported], dtype=np.int64)
-    m = np.array([lc["refined_match_index"] for lc in reported], dtype=np.int64)
+    reported = [lc for lc in loop_closures if lc.verification == "accepted"]
+    q = np.array([lc.query.index for lc in reported], dtype=np.int64)
+    m = np.array([lc.matched.index for lc in reported], dtype=np.int64)
     return np.asarray(gt.are_true(q, m, 0))
 
 
@@ -83,15 +83,15 @@ def test_without_both_rules_the_check_accepts_other_places(tmp_path) -> None:
     )
     true = _reported_truth(closures, "drive_varrate")
     assert (~true).sum() >= 20
-    rejected = {lc["rejection_reason"] for lc in closures if lc["verification"] == "rejected"}
+    rejected = {lc.rejection_reason for lc in closures if lc.verification == "rejected"}
     assert NOT_BRACKETED not in rejected and not any("rotation over" in r for r in rejected)
 
 
 def test_rejections_name_the_rule_and_carry_no_pose(tmp_path) -> None:
     closures = _verified(SAMPLES / "drive_varrate.bag", tmp_path / "out.mcap")
-    reasons = [lc["rejection_reason"] for lc in closures if lc["verification"] == "rejected"]
+    reasons = [lc.rejection_reason for lc in closures if lc.verification == "rejected"]
     assert NOT_BRACKETED in reasons and "rotation over 10 deg" in reasons
-    assert not any(lc["has_relative_pose"] for lc in closures if lc["verification"] != "accepted")
+    assert not any(lc.has_relative_pose for lc in closures if lc.verification != "accepted")
 
 
 def test_the_match_camera_direction_agrees_with_the_true_poses() -> None:

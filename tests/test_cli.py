@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+from golden import RTABMAP_FRAMES, RTABMAP_LOOP_EVENTS
 
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ExitCode
@@ -36,7 +37,7 @@ def test_evaluate_json_reports_the_rtabmap_figures(shared_data, capsys) -> None:
     )
     assert code == 0
     doc = json.loads(out)
-    assert doc["gt_loop_events"] == 44 and doc["frames"] == 84
+    assert doc["gt_loop_events"] == RTABMAP_LOOP_EVENTS and doc["frames"] == RTABMAP_FRAMES
     assert doc["parameters"]["kappa_s"] == 10.0
     assert doc["tp"] + doc["fp"] >= 0 and 0 <= doc["precision"] <= 1
     assert doc["r_p100"] > 0 and doc["threshold_at_r_p100"] is not None

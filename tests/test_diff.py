@@ -2,18 +2,25 @@
 
 from __future__ import annotations
 
-import copy
 import json
 import re
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
-from doseqslam_logs.annotations.records import FrameTimes, time_dict
+from doseqslam_logs.annotations.records import (
+    NOT_RECORDED,
+    FrameRef,
+    FrameTimes,
+    LoopClosureRecord,
+    time_dict,
+)
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector.params import Parameters
 from doseqslam_logs.evaluation.diff import (
@@ -73,7 +80,7 @@ def class_count(table: str, label: str) -> int:
 
 def index_pairs(path: Path) -> set[tuple[int, int]]:
     """(query, match) frame indices: the same source, so indices identify frames too."""
-    return {(lc["query_index"], lc["match_index"]) for lc in read_annotations(path).loop_closures}
+    return {(lc.query.index, lc.match.index) for lc in read_annotations(path).loop_closures}
 
 
 # --- real logs ------------------------------------------------------------------------------
@@ -136,8 +143,9 @@ def test_the_cli_shows_counts_parameters_and_first_pairs_and_exits_1(runs, capsy
     assert class_count(out, "only in A") == 0
     assert "  threshold  0.75  0.9" in out
     assert f"only in B (first 5 of {len(extra)}):" in out
-    first = next(lc for lc in log_b.loop_closures if lc["query_index"] == extra[0][0])
-    query_s = first["query_stamp"]["sec"] + first["query_stamp"]["nsec"] / 1e9
+    first = next(lc for lc in log_b.loop_closures if lc.query.index == extra[0][0])
+    assert first.query.stamp_ns is not None
+    query_s = first.query.stamp_ns / 1e9
     assert f"{query_s:.3f} (#{extra[0][0]})" in out
     assert out.rstrip().endswith("result: reported loop closures are different (exit 1)")
 
@@ -207,8 +215,8 @@ def test_json_lists_every_pair_with_times_and_indices(runs, capsys) -> None:
 def test_verification_rejects_pairs_refines_matches_and_changes_verdicts(runs) -> None:
     unchecked, verified = read_annotations(runs["base"]), read_annotations(runs["verified"])
     result = diff_logs(unchecked, verified)
-    verdict = {lc["query_index"]: lc["verification"] for lc in verified.loop_closures}
-    refined = {lc["query_index"]: lc["refined_match_index"] for lc in verified.loop_closures}
+    verdict = {lc.query.index: lc.verification for lc in verified.loop_closures}
+    refined = {lc.query.index: lc.matched.index for lc in verified.loop_closures}
     proposed = dict(index_pairs(runs["base"]))
     assert proposed == dict(index_pairs(runs["verified"]))  # th alike: the same candidates
     rejected = {q for q, v in verdict.items() if v == "rejected"}
@@ -265,20 +273,21 @@ def test_a_tolerance_that_is_not_a_number_is_rejected_by_argparse(runs, capsys) 
 # --- tolerance, refined matches and verdicts on edited copies of a real log ----------------
 
 
-def moved(time: dict[str, int], offset_ns: int) -> dict[str, int]:
-    return time_dict(time["sec"] * 10**9 + time["nsec"] + offset_ns)
+def moved(frame: FrameRef, offset_ns: int) -> FrameRef:
+    assert frame.stamp_ns is not None
+    return replace(frame, stamp_ns=frame.stamp_ns + offset_ns)
 
 
 def shifted(log: AnnotatedLog, offset_ns: int, prefixes: tuple[str, ...]) -> AnnotatedLog:
     """A copy whose frame stamps (of these prefixes) moved by `offset_ns`, e.g. another clock.
-    The refined match, when the log has one, moves with the match."""
-    edited = copy.deepcopy(log)
-    for lc in edited.loop_closures:
-        for prefix in prefixes:
-            for name in (f"{prefix}_stamp", f"refined_{prefix}_stamp"):
-                if name in lc:
-                    lc[name] = moved(lc[name], offset_ns)
-    return edited
+    The refined match moves with the match."""
+    closures = []
+    for lc in log.loop_closures:
+        changes = {prefix: moved(getattr(lc, prefix), offset_ns) for prefix in prefixes}
+        if "match" in prefixes:
+            changes["refined_match"] = moved(lc.matched, offset_ns)
+        closures.append(replace(lc, **changes))
+    return replace(log, loop_closures=tuple(closures))
 
 
 def test_tolerance_pairs_times_that_differ_by_less_than_it(runs) -> None:
@@ -299,22 +308,21 @@ def test_tolerance_pairs_times_that_differ_by_less_than_it(runs) -> None:
 def with_verification(log: AnnotatedLog, verdicts: dict[int, tuple[str, int]]) -> AnnotatedLog:
     """A copy with verification fields: query index -> (verdict, refined match index);
     every other pair "off"."""
-    edited = copy.deepcopy(log)
-    assert edited.frame_times is not None
-    for lc in edited.loop_closures:
-        verdict, refined = verdicts.get(lc["query_index"], ("off", lc["match_index"]))
-        lc["verification"] = verdict
-        lc["refined_match_index"] = refined
-        lc["refined_match_log_time"] = time_dict(edited.frame_times.log_time(refined))
-        lc["refined_match_stamp"] = time_dict(edited.frame_times.stamp(refined) or 0)
-        lc["refined_match_has_stamp"] = edited.frame_times.stamp(refined) is not None
-    return edited
+    times = log.frame_times
+    assert times is not None
+    closures = []
+    for lc in log.loop_closures:
+        verdict, refined = verdicts.get(lc.query.index, ("off", lc.match.index))
+        closures.append(
+            replace(lc, verification=verdict, refined_match=FrameRef.of(refined, times))
+        )
+    return replace(log, loop_closures=tuple(closures))
 
 
 def test_reported_pairs_use_the_refined_match_and_skip_rejected_ones(runs) -> None:
     base = read_annotations(runs["base"])
-    first, second, third = (lc["query_index"] for lc in base.loop_closures[:3])
-    match_of = {lc["query_index"]: lc["match_index"] for lc in base.loop_closures}
+    first, second, third = (lc.query.index for lc in base.loop_closures[:3])
+    match_of = {lc.query.index: lc.match.index for lc in base.loop_closures}
     verified = with_verification(
         base,
         {
@@ -339,9 +347,8 @@ def test_reported_pairs_use_the_refined_match_and_skip_rejected_ones(runs) -> No
 
 def test_verdicts_are_not_compared_when_a_log_predates_verification(runs) -> None:
     base = read_annotations(runs["base"])
-    without = copy.deepcopy(base)
-    for lc in without.loop_closures:
-        lc.pop("verification", None)
+    closures = tuple(replace(lc, verification=NOT_RECORDED) for lc in base.loop_closures)
+    without = replace(base, loop_closures=closures)
     result = diff_logs(without, with_verification(base, {}))
     assert result.verdicts is None and result.equal
     assert "not compared" in result.format_table()
@@ -359,10 +366,20 @@ def test_a_refined_index_without_times_is_placed_by_the_frame_times() -> None:
         "match_log_time": time_dict(20 * MS),
         "match_stamp": time_dict(21 * MS),
         "match_has_stamp": True,
+        "difference": 0.5,
+        **dict.fromkeys(("sequence_id", "sequence_first_index", "sequence_last_index"), 0),
+        **dict.fromkeys(("match_first_index", "match_last_index"), 1),
+        **dict.fromkeys(("gamma", "gamma_previous", "gamma_next", "f", "threshold"), 0.5),
+        "method": "doseqslam",
+        "parameters_hash": "0" * 16,
     }
-    assert reported_pair(lc, times) == Pair(31 * MS, 21 * MS, 2, 1)
-    assert reported_pair({**lc, "refined_match_index": 0}, times) == Pair(31 * MS, 10 * MS, 2, 0)
-    assert reported_pair({**lc, "refined_match_index": 0}, None) == Pair(31 * MS, 21 * MS, 2, 1)
+
+    def pair(message: dict[str, Any], frame_times: FrameTimes | None) -> Pair:
+        return reported_pair(LoopClosureRecord.from_message(message, frame_times))
+
+    assert pair(lc, times) == Pair(31 * MS, 21 * MS, 2, 1)
+    assert pair({**lc, "refined_match_index": 0}, times) == Pair(31 * MS, 10 * MS, 2, 0)
+    assert pair({**lc, "refined_match_index": 0}, None) == Pair(31 * MS, 21 * MS, 2, 1)
 
 
 def test_recorded_parameters_flattens_every_parameter_set() -> None:

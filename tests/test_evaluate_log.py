@@ -3,19 +3,21 @@ truth from the log's poses agrees with the sample's committed matrix; errors and
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from golden import DRIVE_LOOPS_GT_LOOP_EVENTS as LOOP_EVENTS
+from golden import DRIVE_LOOPS_PAPER_PAIRS as PAIRS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
-from doseqslam_logs.annotations.records import FrameTimes
+from doseqslam_logs.annotations.records import FrameRef, FrameTimes
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import ExitCode, GroundTruthError
@@ -91,11 +93,13 @@ def test_rebuilt_decisions_are_the_runs(annotated) -> None:
 def test_figures_equal_those_of_the_in_memory_run(annotated, tolerance) -> None:
     out, result = annotated
     gt = load_ground_truth(GT)
-    expected = evaluate(result.replay.decisions, gt, Parameters().threshold, tolerance)
-    got = evaluate_annotated_log(read_annotations(out), gt, tolerance)
-    assert got.raw == expected
+    log = read_annotations(out)
+    times = log.detector_times_ns()  # for the revisit coverage
+    expected = evaluate(result.replay.decisions, gt, Parameters().threshold, tolerance, times)
+    got = evaluate_annotated_log(log, gt, tolerance)
+    assert got.raw == expected and len(got.raw.coverage) == 2
     assert got.verified is None  # the run recorded no verification
-    assert expected.tp + expected.fp == 47 and expected.gt_loop_events == 123
+    assert expected.tp + expected.fp == PAIRS and expected.gt_loop_events == LOOP_EVENTS
 
 
 def test_json_holds_the_in_memory_figures(annotated, capsys) -> None:
@@ -103,11 +107,13 @@ def test_json_holds_the_in_memory_figures(annotated, capsys) -> None:
     code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt", GT, "--json")
     assert code == 0
     doc = json.loads(stdout)
-    expected = evaluate(result.replay.decisions, load_ground_truth(GT), 0.75).to_json_dict()
-    assert {key: doc[key] for key in expected} == expected
+    times = read_annotations(out).detector_times_ns()
+    expected = evaluate(result.replay.decisions, load_ground_truth(GT), 0.75, 0, times)
+    expected_json = expected.to_json_dict()
+    assert {key: doc[key] for key in expected_json} == expected_json
     assert doc["ground_truth"] == {"kind": "file", "file": str(GT), "variable": "gt"}
     assert doc["verified"] is None and doc["plots"] == []
-    assert doc["parameters_hash"] == read_annotations(out).metadata["parameters_hash"]
+    assert doc["parameters_hash"] == read_annotations(out).metadata.parameters_hash
     assert doc["parameters"]["kappa_s"] == 40.0 and doc["image_topic"] == "/camera/image/compressed"
     assert doc["source_file"] == LOG.name
     assert len(doc["curve"]) > 1 and doc["threshold_at_r_p100"] is not None
@@ -119,9 +125,11 @@ def test_text_report_names_the_run_and_the_figures(annotated, capsys) -> None:
     assert code == 0
     lines = stdout.splitlines()
     assert lines[0].startswith("doseqslam run recorded in")
-    assert read_annotations(out).metadata["parameters_hash"] in lines[0]
-    assert "reported pairs   : 47 (TP 47, FP 0)" in lines
-    assert "recall           : 38.21 % (47 of 123)" in lines
+    assert read_annotations(out).metadata.parameters_hash in lines[0]
+    assert f"reported pairs   : {PAIRS} (TP {PAIRS}, FP 0)" in lines
+    assert (
+        f"recall           : {100 * PAIRS / LOOP_EVENTS:.2f} % ({PAIRS} of {LOOP_EVENTS})" in lines
+    )
     assert any(line.startswith("R@P100           : 38.21 % at th = ") for line in lines)
 
 
@@ -135,9 +143,8 @@ def test_ground_truth_of_another_size_is_refused(annotated, capsys) -> None:
 
 def test_size_check_without_frame_times_uses_the_sequences(annotated) -> None:
     out, _ = annotated
-    log = read_annotations(out)
-    log.frame_times = None  # as annotated before frame times existed
-    assert evaluate_annotated_log(log, load_ground_truth(GT)).raw.tp == 47
+    log = replace(read_annotations(out), frame_times=None)  # annotated before frame times
+    assert evaluate_annotated_log(log, load_ground_truth(GT)).raw.tp == PAIRS
     with pytest.raises(GroundTruthError, match=r"has 241 frames but .* over 240 frames"):
         evaluate_annotated_log(log, GroundTruth(241, [], []))
 
@@ -148,15 +155,17 @@ def test_size_check_without_frame_times_uses_the_sequences(annotated) -> None:
 def with_verification(log: AnnotatedLog) -> AnnotatedLog:
     """The log as a verified run would record it: odd query frames rejected; the first
     accepted pair refined onto frame 0 (so it turns false)."""
-    verified = copy.deepcopy(log)
-    for message in verified.sequences:
-        message["verification"] = "on"
-    accepted = [lc for lc in verified.loop_closures if lc["query_index"] % 2 == 0]
-    for lc in verified.loop_closures:
-        lc["verification"] = "accepted" if lc in accepted else "rejected"
-        lc["refined_match_index"] = lc["match_index"]
-    accepted[0]["refined_match_index"] = 0
-    return verified
+    assert log.frame_times is not None
+    first_accepted = min(lc.query.index for lc in log.loop_closures if lc.query.index % 2 == 0)
+    closures = []
+    for lc in log.loop_closures:
+        verdict = "rejected" if lc.query.index % 2 else "accepted"
+        refined = 0 if lc.query.index == first_accepted else lc.match.index
+        closures.append(
+            replace(lc, verification=verdict, refined_match=FrameRef.of(refined, log.frame_times))
+        )
+    sequences = tuple(replace(s, verification="on") for s in log.sequences)
+    return replace(log, loop_closures=tuple(closures), sequences=sequences)
 
 
 def test_verified_figures_count_accepted_pairs_at_their_refined_match(annotated) -> None:
@@ -164,8 +173,8 @@ def test_verified_figures_count_accepted_pairs_at_their_refined_match(annotated)
     log = with_verification(read_annotations(out))
     gt = load_ground_truth(GT)
     result = evaluate_annotated_log(log, gt)
-    accepted = [lc for lc in log.loop_closures if lc["verification"] == "accepted"]
-    truth = [gt.is_true(lc["query_index"], lc["refined_match_index"]) for lc in accepted]
+    accepted = [lc for lc in log.loop_closures if lc.verification == "accepted"]
+    truth = [gt.is_true(lc.query.index, lc.matched.index) for lc in accepted]
     assert result.verified is not None
     assert (result.verified.tp, result.verified.fp) == (sum(truth), len(truth) - sum(truth))
     assert result.verified.fp == 1 and result.verified.tp == len(accepted) - 1
@@ -199,9 +208,11 @@ def test_verified_figures_of_a_verified_run_equal_the_in_memory_ones(verified_ru
     assert result.verification is not None
     gt = load_ground_truth(GT)
     in_memory = verified_decisions(result.verification.decisions.values())
-    expected_verified = evaluate(in_memory, gt, threshold)
-    got = evaluate_annotated_log(read_annotations(out), gt)
-    assert got.raw == evaluate(result.replay.decisions, gt, threshold)
+    log = read_annotations(out)
+    times = log.detector_times_ns()
+    expected_verified = evaluate(in_memory, gt, threshold, 0, times)
+    got = evaluate_annotated_log(log, gt)
+    assert got.raw == evaluate(result.replay.decisions, gt, threshold, 0, times)
     assert got.verified == expected_verified
     assert got.verified.tp + got.verified.fp == result.loop_closures > 0
     assert got.raw.tp + got.raw.fp > got.verified.tp + got.verified.fp
@@ -213,7 +224,7 @@ def test_cli_reports_verified_figures_side_by_side(annotated, capsys, monkeypatc
     monkeypatch.setattr(log_run, "read_annotations", lambda path: log)
     code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt", GT, "--json")
     doc = json.loads(stdout)
-    assert code == 0 and doc["verified"]["fp"] == 1 and doc["tp"] == 47
+    assert code == 0 and doc["verified"]["fp"] == 1 and doc["tp"] == PAIRS
     assert doc["verified"]["tp"] + doc["verified"]["fp"] < doc["tp"] + doc["fp"]
 
 
@@ -224,7 +235,7 @@ def test_pose_ground_truth_of_the_log_is_the_committed_one(annotated, capsys) ->
     out, _ = annotated
     log = read_annotations(out)
     assert log.frame_times is not None
-    times = frame_pose_times(log.frame_times, log.metadata["time_source"])
+    times = frame_pose_times(log.frame_times, log.metadata.time_source)
     poses = frame_poses(read_poses(out, POSES), times)
     committed = load_ground_truth(GT)
     for travel in (20.0, None):  # the travel condition never binds on drive_loops
@@ -267,7 +278,7 @@ def test_sidecar_reads_poses_from_the_source_log(annotated, sidecar, capsys) -> 
     code, stdout, _ = run_cli(
         capsys, "evaluate", sidecar, "--gt-topic", POSES, *SAMPLE_GT, "--source", LOG, "--json"
     )
-    assert code == 0 and json.loads(stdout)["tp"] == 47
+    assert code == 0 and json.loads(stdout)["tp"] == PAIRS
     wrong = SAMPLES / "drive_parked.ros2.mcap"
     code, _, err = run_cli(
         capsys, "evaluate", sidecar, "--gt-topic", POSES, "--radius", "2", "--source", wrong

@@ -7,18 +7,19 @@ import io
 import itertools
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
+from doseqslam_logs.annotations.records import LoopClosureRecord, RunMetadata
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import UsageError
 from doseqslam_logs.export import export_log
-from doseqslam_logs.export.loops import COLUMNS, frame_times_ns, loop_closure_row, matched_index
+from doseqslam_logs.export.loops import COLUMNS, frame_times_ns, loop_closure_row
 from doseqslam_logs.export.pose_graph import verified_body_rotation
 from doseqslam_logs.sources.poses import read_poses
 
@@ -46,7 +47,7 @@ def export(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, st
 
 
 def test_the_sample_has_accepted_and_rejected_pairs(log: AnnotatedLog) -> None:
-    verdicts = {lc.get("verification") for lc in log.loop_closures}
+    verdicts = {lc.verification for lc in log.loop_closures}
     assert verdicts == {"accepted", "rejected"}  # the rest of this file relies on both
 
 
@@ -62,11 +63,11 @@ def test_csv_has_one_row_per_reported_loop_closure(
     assert {row["verification"] for row in rows} == {"accepted"}
     times = frame_times_ns(log)
     for row, lc in zip(rows, reported, strict=True):
-        assert int(row["query_index"]) == lc["query_index"]
-        assert int(row["query_time_ns"]) == times[lc["query_index"]]
-        assert int(row["match_time_ns"]) == times[lc["match_index"]]
-        assert int(row["refined_match_index"]) == matched_index(lc)
-        assert int(row["refined_match_time_ns"]) == times[matched_index(lc)]
+        assert int(row["query_index"]) == lc.query.index
+        assert int(row["query_time_ns"]) == times[lc.query.index]
+        assert int(row["match_time_ns"]) == times[lc.match.index]
+        assert int(row["refined_match_index"]) == lc.matched.index
+        assert int(row["refined_match_time_ns"]) == times[lc.matched.index]
         assert int(row["inliers"]) > 0
         assert float(row["f"]) < float(row["threshold"])
         quaternion = [float(row[f"rotation_q{axis}"]) for axis in "xyzw"]
@@ -108,13 +109,18 @@ def test_rows_of_logs_without_verification_have_empty_verification_fields() -> N
         **{f"{p}_stamp": {"sec": 0, "nsec": 0} for p in ("query", "match")},
         **{f"{p}_has_stamp": False for p in ("query", "match")},
         "difference": 1.5,
+        **dict.fromkeys(("sequence_first_index", "sequence_last_index"), 9),
+        **dict.fromkeys(("match_first_index", "match_last_index"), 2),
+        **dict.fromkeys(("gamma", "gamma_previous", "gamma_next"), 0.5),
         "f": 0.5,
         "threshold": 0.75,
         "sequence_id": 3,
         "method": "doseqslam",
         "parameters_hash": "0" * 16,
     }
-    row = loop_closure_row(AnnotatedLog(Path("old.mcap")), old)
+    metadata = RunMetadata.from_entries({"tool_version": "0.1.0"})
+    record = LoopClosureRecord.from_message(old)
+    row = loop_closure_row(AnnotatedLog(Path("old.mcap"), metadata, (record,)), record)
     assert row["query_time_ns"] == 1_000_000_005  # no header stamp: the log time
     assert row["verification"] is None and row["refined_match_index"] is None
     assert row["rotation_qw"] is None and row["translation_dz"] is None
@@ -178,7 +184,7 @@ def test_g2o_vertices_and_edges_are_consistent(
     odometry, loops = edges[:239], edges[239:]
     assert [(int(e[0]), int(e[1])) for e in odometry] == [(k, k + 1) for k in range(239)]
     assert [(int(e[0]), int(e[1])) for e in loops] == [
-        (lc["query_index"], matched_index(lc)) for lc in reported
+        (lc.query.index, lc.matched.index) for lc in reported
     ]
     for edge in edges:
         information = _information(edge)
@@ -248,8 +254,8 @@ def test_g2o_stride_keeps_every_kth_frame_and_the_loop_frames(
     assert code == 0
     graph = _g2o(out)
     ids = [int(v[0]) for v in graph["VERTEX_SE3:QUAT"]]
-    loop_frames = {lc["query_index"] for lc in log.reported_loop_closures}
-    loop_frames |= {matched_index(lc) for lc in log.reported_loop_closures}
+    loop_frames = {lc.query.index for lc in log.reported_loop_closures}
+    loop_frames |= {lc.matched.index for lc in log.reported_loop_closures}
     assert ids == sorted(set(range(0, 240, 10)) | {239} | loop_frames)
     odometry = [(int(e[0]), int(e[1])) for e in graph["EDGE_SE3:QUAT"][: len(ids) - 1]]
     assert odometry == list(itertools.pairwise(ids))
@@ -334,18 +340,16 @@ def _optical_rotation_for_body_yaw(degrees: float) -> list[float]:
 
 
 @pytest.mark.parametrize("degrees", [-30.0, -5.0, 0.0, 12.0, 90.0])
-def test_verified_rotation_becomes_a_body_yaw(degrees: float) -> None:
-    lc: dict[str, Any] = {
-        "has_relative_pose": True,
-        "rotation_xyzw": _optical_rotation_for_body_yaw(degrees),
-    }
+def test_verified_rotation_becomes_a_body_yaw(degrees: float, log: AnnotatedLog) -> None:
+    rotation = tuple(_optical_rotation_for_body_yaw(degrees))
+    lc = replace(log.loop_closures[0], has_relative_pose=True, rotation_xyzw=rotation)
     body = verified_body_rotation(lc)
     assert body is not None
     yaw, pitch, roll = Rotation.from_quat(body).as_euler("zyx", degrees=True)
     assert yaw == pytest.approx(degrees, abs=1e-9)
     assert pitch == pytest.approx(0.0, abs=1e-9) and roll == pytest.approx(0.0, abs=1e-9)
-    assert verified_body_rotation({**lc, "has_relative_pose": False}) is None
-    assert verified_body_rotation({**lc, "rotation_xyzw": [math.nan] * 4}) is None
+    assert verified_body_rotation(replace(lc, has_relative_pose=False)) is None
+    assert verified_body_rotation(replace(lc, rotation_xyzw=(math.nan,) * 4)) is None
 
 
 def test_export_log_gives_the_commands_text(annotated: Path, tmp_path, capsys) -> None:

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import scipy.io
+from golden import RTABMAP_FRAMES, RTABMAP_LOOP_EVENTS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import sparse
@@ -61,9 +62,9 @@ def test_tsintotas_lip6_is_a_superset_of_the_original(shared_data: Path) -> None
 
 def test_rtabmap_bitmap(shared_data: Path) -> None:
     gt = load_ground_truth(shared_data / "rtabmap_samples_loop" / "samples_GT.bmp")
-    assert gt.n_frames == 84
+    assert gt.n_frames == RTABMAP_FRAMES
     assert gt.nnz == 228
-    assert gt.n_loop_events == 44
+    assert gt.n_loop_events == RTABMAP_LOOP_EVENTS
     assert gt.variable is None and not gt.transposed
     coo = gt.matrix.tocoo()
     assert (coo.col < coo.row).all()

@@ -21,7 +21,7 @@ LOOPS = SAMPLES / "drive_loops.ros2.mcap"
 
 def summary_of(path: Path):
     with McapSource(path) as source:
-        return source._summary if source.indexed else None
+        return source.summary if source.indexed else None
 
 
 def indexed_files(shared_data: Path) -> list[Path]:

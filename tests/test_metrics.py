@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Sequence
 from dataclasses import astuple
@@ -327,3 +328,52 @@ def test_ratios_stay_in_range_and_recall_never_decreases(
     if e.threshold_at_r_p100 is not None:
         again = evaluate(decisions, gt, e.threshold_at_r_p100, tolerance)
         assert (again.fp, again.recall) == (0, e.r_p100)
+
+
+# -- revisit coverage ---------------------------------------------------------------------
+
+
+def test_revisit_coverage_counts_windows_with_a_revisit_and_a_true_pair() -> None:
+    """Frames at 10 Hz: revisits at frames 20-39 (0.2 s apart from 2.0 s to 3.9 s) and 60-61;
+    true pairs reported at frames 20 and 35, a false one at frame 61, one above th at 60."""
+    gt = GroundTruth.from_pairs(70, [(q, q - 20) for q in [*range(20, 40), 60, 61]])
+    times = [i * 100_000_000 for i in range(70)]
+    decisions = [
+        decision(0.3, [(20, 0), (35, 15)], sequence_id=0),
+        decision(0.4, [(61, 0)], sequence_id=1),  # a false pair: no coverage
+        decision(0.9, [(60, 40)], sequence_id=2),  # true, but above th
+    ]
+    result = evaluate(decisions, gt, 0.75, frame_times_ns=times)
+    one, five = result.coverage
+    # 1-s windows with a revisit: [2, 3) [3, 4) [6, 7); covered: [2, 3) and [3, 4).
+    assert (one.window_s, one.windows, one.covered) == (1.0, 3, 2)
+    # 5-s windows: [0, 5) and [5, 10) hold revisits; only the first has a true pair.
+    assert (five.windows, five.covered) == (2, 1) and five.share == 0.5
+    assert "coverage 1 s     : 66.67 % (2 of 3) windows with a revisit" in format_report(result)
+    assert result.to_json_dict()["coverage"][0] == {
+        "window_s": 1.0,
+        "windows": 3,
+        "covered": 2,
+        "share": 2 / 3,
+    }
+    assert evaluate(decisions, gt, 0.95, frame_times_ns=times).coverage[0].covered == 3
+    assert evaluate(decisions, gt, 0.75).coverage == ()  # no times, no coverage
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    revisits=st.sets(st.integers(0, 59), min_size=1),
+    found=st.sets(st.integers(0, 59)),
+    gaps=st.lists(st.integers(1, 700_000_000), min_size=60, max_size=60),
+)
+def test_coverage_is_never_above_one_and_is_one_when_every_revisit_is_found(
+    revisits: set[int], found: set[int], gaps: list[int]
+) -> None:
+    gt = GroundTruth.from_pairs(61, [(q + 1, 0) for q in revisits])
+    times = [0, *itertools.accumulate(gaps)]
+    pairs = [(q + 1, 0) for q in sorted(found)]
+    for coverage in evaluate([decision(0.1, pairs)], gt, 0.75, frame_times_ns=times).coverage:
+        assert 0 <= coverage.covered <= coverage.windows <= len(revisits)
+    every = [(q + 1, 0) for q in sorted(revisits)]
+    for coverage in evaluate([decision(0.1, every)], gt, 0.75, frame_times_ns=times).coverage:
+        assert coverage.covered == coverage.windows

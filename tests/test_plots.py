@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -105,7 +106,7 @@ def test_titles_labels_and_legends(annotated, capsys, tmp_path, figures) -> None
     evaluate_json(
         capsys, annotated, "--gt-topic", "/ground_truth/pose", "--radius", "2", "--plot", tmp_path
     )
-    parameters_hash = read_annotations(annotated).metadata["parameters_hash"]
+    parameters_hash = read_annotations(annotated).metadata.parameters_hash
     assert len(parameters_hash) == 16
     assert sorted(figures) == ["difference_matrix_figure", "pr_curve_figure", "trajectory_figure"]
     labels = {
@@ -150,8 +151,8 @@ def test_subsampled_matrix_holds_the_full_matrixs_cells(annotated) -> None:
 def test_frames_found_by_time_or_by_decoding_agree(annotated) -> None:
     log = read_annotations(annotated)
     by_times = difference_matrix(annotated, log, max_side=60)
-    log.frame_times = None  # an older annotation: every frame is decoded again
-    by_decoding = difference_matrix(annotated, log, max_side=60)
+    older = replace(log, frame_times=None)  # an older annotation: every frame is decoded again
+    by_decoding = difference_matrix(annotated, older, max_side=60)
     assert by_times.window == by_decoding.window == 10 and by_times.frames == 240
     assert np.array_equal(by_times.values, by_decoding.values)
     assert np.array_equal(by_times.frame_indices, by_decoding.frame_indices)

@@ -24,14 +24,9 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from doseqslam_logs.annotations.records import (
-    LOOP_CLOSURE,
-    SEQUENCE,
-    FrameTimes,
-    loop_closure_messages,
-    sequence_messages,
-)
+from doseqslam_logs.annotations.records import LOOP_CLOSURE, SEQUENCE, FrameTimes
 from doseqslam_logs.annotations.schema_files import read_schema
+from doseqslam_logs.annotations.writer import loop_closure_messages, sequence_messages
 from doseqslam_logs.detector.events import Candidate, SequenceDecision
 from doseqslam_logs.errors import OutputError, SourceError
 from doseqslam_logs.sinks.encoders import ENCODERS, Ros1Encoder, Ros2Encoder, encoder_for_profile

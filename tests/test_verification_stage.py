@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from golden import DRIVE_LOOPS_PAPER_PAIRS, RTABMAP_VERIFIED_MIN_TP
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
@@ -53,27 +54,27 @@ def yaw_by_frame() -> dict[int, float]:
 
 def test_each_candidate_is_recorded_with_its_verdict(verified_log) -> None:
     log = read_annotations(verified_log)
-    verdicts = {lc["verification"] for lc in log.loop_closures}
+    verdicts = {lc.verification for lc in log.loop_closures}
     assert verdicts == {"accepted", "rejected"}  # rejected pairs stay visible
-    accepted = [lc for lc in log.loop_closures if lc["verification"] == "accepted"]
+    accepted = [lc for lc in log.loop_closures if lc.verification == "accepted"]
     assert log.reported_loop_closures == accepted
-    assert all(lc["inliers"] >= DEFAULT_VERIFICATION.min_inliers for lc in accepted)
-    assert all(lc["rejection_reason"] for lc in log.loop_closures if lc not in accepted)
+    assert all(lc.inliers >= DEFAULT_VERIFICATION.min_inliers for lc in accepted)
+    assert all(lc.rejection_reason for lc in log.loop_closures if lc not in accepted)
     r = DEFAULT_VERIFICATION.refine_radius
     for lc in log.loop_closures:  # the refined match is near the match of its proposal
-        assert abs(lc["refined_match_index"] - lc["proposal_match_index"]) <= r
-        assert (lc["proposal"] == 0) == (lc["proposal_match_index"] == lc["match_index"])
-        assert lc["proposal"] == 0 or lc["verification"] == "accepted"
+        assert abs(lc.matched.index - lc.proposal_match_index) <= r
+        assert (lc.proposal == 0) == (lc.proposal_match_index == lc.match.index)
+        assert lc.proposal == 0 or lc.verification == "accepted"
     # Some pairs were found on a next-best trajectory of their sequence, far from the match.
-    alternative = [lc for lc in accepted if lc["proposal"] > 0]
+    alternative = [lc for lc in accepted if lc.proposal > 0]
     assert alternative
-    assert all(abs(lc["refined_match_index"] - lc["match_index"]) > r for lc in alternative)
-    assert log.metadata["verification"] == "on"
-    assert log.metadata["intrinsics_source"] == "/camera/camera_info"
-    assert log.metadata["loop_closures"] == str(len(accepted))
-    sequences = [s for s in log.sequences if s["verified_pairs"]]
-    assert sum(s["accepted_pairs"] for s in sequences) == len(accepted)
-    assert all(s["verification"] == "on" for s in log.sequences)
+    assert all(abs(lc.matched.index - lc.match.index) > r for lc in alternative)
+    assert log.metadata.verification == "on"
+    assert log.metadata.intrinsics_source == "/camera/camera_info"
+    assert log.metadata.loop_closures == len(accepted)
+    sequences = [s for s in log.sequences if s.verified_pairs]
+    assert sum(s.accepted_pairs for s in sequences) == len(accepted)
+    assert all(s.verification == "on" for s in log.sequences)
 
 
 def test_relative_rotation_matches_the_ground_truth_poses(verified_log) -> None:
@@ -81,10 +82,10 @@ def test_relative_rotation_matches_the_ground_truth_poses(verified_log) -> None:
     yaw = yaw_by_frame()
     errors = []
     for lc in read_annotations(verified_log).reported_loop_closures:
-        assert lc["has_relative_pose"] and lc["verification_model"] == "essential"
-        q, m = lc["query_index"], lc["refined_match_index"]
+        assert lc.has_relative_pose and lc.verification_model == "essential"
+        q, m = lc.query.index, lc.matched.index
         turned = abs(math.remainder(yaw[q] - yaw[m], math.tau))
-        errors.append(abs(lc["rotation_deg"] - math.degrees(turned)))
+        errors.append(abs(lc.rotation_deg - math.degrees(turned)))
     assert len(errors) >= 30
     assert np.median(errors) < 2.0 and np.percentile(errors, 90) < 5.0
 
@@ -95,8 +96,8 @@ def test_verified_pairs_are_true_places_on_the_sample(verified_log) -> None:
     (docs/results.md)."""
     gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
     reported = read_annotations(verified_log).reported_loop_closures
-    q = np.array([lc["query_index"] for lc in reported])
-    m = np.array([lc["refined_match_index"] for lc in reported])
+    q = np.array([lc.query.index for lc in reported])
+    m = np.array([lc.matched.index for lc in reported])
     true = gt.are_true(q, m, 0)
     assert true.sum() >= 45 and (~true).sum() == 0
 
@@ -106,10 +107,10 @@ def test_no_verify_is_the_papers_decision(tmp_path) -> None:
     assert main(["annotate", str(LOOPS), "-o", str(out), "--no-verify"]) == 0
     log = read_annotations(out)
     assert log.parameters["threshold"] == 0.75  # Table II, not VERIFIED_THRESHOLD
-    assert {lc["verification"] for lc in log.loop_closures} == {"off"}
-    assert all(lc["inliers"] == -1 for lc in log.loop_closures)
-    assert all(lc["refined_match_index"] == lc["match_index"] for lc in log.loop_closures)
-    assert log.metadata["verification"] == "off" and len(log.loop_closures) == 47
+    assert {lc.verification for lc in log.loop_closures} == {"off"}
+    assert all(lc.inliers == -1 for lc in log.loop_closures)
+    assert all(lc.matched.index == lc.match.index for lc in log.loop_closures)
+    assert log.metadata.verification == "off" and len(log.loop_closures) == DRIVE_LOOPS_PAPER_PAIRS
 
 
 def test_cli_verifies_by_default_with_the_verified_threshold(tmp_path, capsys) -> None:
@@ -154,7 +155,7 @@ def test_verified_figures_on_rtabmap_reach_the_target(shared_data) -> None:
     gt = load_ground_truth(shared_data / "rtabmap_samples_loop" / "samples_GT.bmp")
     raw, checked = evaluate(decisions, gt, params.threshold), evaluate(verified, gt, 0.99)
     assert raw.r_p100 < 0.25 and checked.r_p100 >= 0.6
-    assert checked.fp == 0 and checked.tp >= 35
+    assert checked.fp == 0 and checked.tp >= RTABMAP_VERIFIED_MIN_TP
 
 
 def test_next_best_trajectories_add_true_pairs_and_no_false_one() -> None:

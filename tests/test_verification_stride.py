@@ -92,22 +92,22 @@ def test_one_candidate_in_s_is_checked_and_the_others_are_not_reported(strided_l
     log = read_annotations(strided_log)
     by_sequence: dict[int, list[dict]] = {}
     for lc in log.loop_closures:
-        by_sequence.setdefault(lc["sequence_id"], []).append(lc)
+        by_sequence.setdefault(lc.sequence_id, []).append(lc)
     skipped = 0
     for pairs in by_sequence.values():
-        pairs.sort(key=lambda lc: lc["query_index"])
+        pairs.sort(key=lambda lc: lc.query.index)
         for z, lc in enumerate(pairs):
             if z % 4:
-                assert lc["verification"] == "skipped" and lc["inliers"] == -1
-                assert lc["rejection_reason"] == "not checked"
+                assert lc.verification == "skipped" and lc.inliers == -1
+                assert lc.rejection_reason == "not checked"
                 skipped += 1
-            elif lc["verification"] == "skipped":  # after two hopeless checks of the sequence
-                assert lc["rejection_reason"] == "sequence given up" and lc["inliers"] == -1
+            elif lc.verification == "skipped":  # after two hopeless checks of the sequence
+                assert lc.rejection_reason == "sequence given up" and lc.inliers == -1
                 skipped += 1
             else:
-                assert lc["verification"] in ("accepted", "rejected") and lc["inliers"] >= 0
+                assert lc.verification in ("accepted", "rejected") and lc.inliers >= 0
     assert skipped > 50
-    assert all(lc["verification"] == "accepted" for lc in log.reported_loop_closures)
+    assert all(lc.verification == "accepted" for lc in log.reported_loop_closures)
     assert len(log.reported_loop_closures) >= 10
     summary = loops_summary(log, len(log.reported_loop_closures), include_rejected=False)
     assert f"{skipped} not checked (high frame rate)" in summary
@@ -116,8 +116,8 @@ def test_one_candidate_in_s_is_checked_and_the_others_are_not_reported(strided_l
 def test_strided_acceptances_are_true_places(strided_log) -> None:
     gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
     reported = read_annotations(strided_log).reported_loop_closures
-    q = np.array([lc["query_index"] for lc in reported])
-    m = np.array([lc["refined_match_index"] for lc in reported])
+    q = np.array([lc.query.index for lc in reported])
+    m = np.array([lc.matched.index for lc in reported])
     # Measured: 12 of 12 GT cells (2 m, 20 deg); 18 of 21 before bracketing and the rotation
     # limit, which also apply to the coarse-to-fine search.
     assert len(q) >= 10 and gt.are_true(q, m, 0).all()
@@ -314,7 +314,7 @@ def test_pictures_draw_skipped_pairs_apart_from_rejected_ones(strided_log) -> No
     log = read_annotations(strided_log)
     gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
     statuses = Counter(d.status for d in detections(plots, log, gt, 0))
-    verdicts = Counter(lc["verification"] for lc in log.loop_closures)
+    verdicts = Counter(lc.verification for lc in log.loop_closures)
     assert statuses["skipped"] == verdicts["skipped"] > 0
     assert statuses["rejected"] == verdicts["rejected"]
     assert statuses["tp"] + statuses["fp"] == verdicts["accepted"]

@@ -51,15 +51,12 @@ from multiprocessing.pool import AsyncResult
 from pathlib import Path
 from typing import Any, Final, Literal
 
+import camera_log_writers as clw
 import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy import sparse
 from scipy.spatial import cKDTree
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import camera_log_writers as clw
 
 # Array aliases name the intended dtype; they are NDArray[Any] because numpy's stubs lose the
 # dtype through most arithmetic, and casts everywhere would hide the code.

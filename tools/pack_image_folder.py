@@ -18,9 +18,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 from camera_log_writers import (
     FORMATS,
     Format,

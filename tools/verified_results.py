@@ -2,9 +2,9 @@
 """The verified-results table of docs/results.md: raw and verified figures per dataset, method
 and ground-truth file.
 
-For each dataset and method the detector runs once and its candidates are verified once (the
-`evaluate --images` path: th = VERIFIED_THRESHOLD, default VerificationParameters); every
-ground-truth file of the dataset is then scored on the same decisions. One markdown row per
+For each dataset and method `evaluate_folder` runs once (what `evaluate --images` runs: the
+verified defaults, th = VERIFIED_THRESHOLD); every ground-truth file of the dataset is then
+scored on the same decisions (`FolderEvaluation.scored_against`). One markdown row per
 (dataset, method, GT file, raw | verified), with the `doseqslam-logs evaluate` command that
 prints the same figures.
 
@@ -17,19 +17,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
-from doseqslam_logs.detector import make_detector
+from doseqslam_logs.evaluation.folder_run import evaluate_folder
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
-from doseqslam_logs.evaluation.metrics import Evaluation, evaluate
-from doseqslam_logs.evaluation.verified import verified_decisions
-from doseqslam_logs.pipeline.replay import replay
-from doseqslam_logs.pipeline.reread import FolderFrameReader
-from doseqslam_logs.sources.image_folder import folder_frames, list_images
-from doseqslam_logs.verification import DEFAULT_VERIFICATION, verified_detector_parameters
-from doseqslam_logs.verification.stage import verify_in_threads
+from doseqslam_logs.evaluation.metrics import Evaluation
+from doseqslam_logs.verification import verified_detector_parameters
 
 DATA = Path("../shared/data")
 
@@ -91,23 +85,21 @@ def rows(data: Path, dataset: Dataset, method: str) -> list[str]:
     params = verified_detector_parameters(method=method, **extra)
     folder = data / dataset.images
     start = time.perf_counter()
-    decisions = replay(folder_frames(folder, 1.0), make_detector(params), workers=2).decisions
-    reader = FolderFrameReader(list_images(folder))
-    checked, stats = verify_in_threads(
-        decisions, lambda: nullcontext(reader), DEFAULT_VERIFICATION, workers=2
-    )
-    verified = verified_decisions(checked)
-    seconds = time.perf_counter() - start
+    truths = [load_ground_truth(data / gt_file) for gt_file, _ in dataset.gts]
+    first = evaluate_folder(folder, 1.0, truths[0], params)  # the `evaluate --images` run
+    assert first.verification is not None
+    stats = first.verification.stats
     print(
         f"{dataset.name}, {method}: {stats.candidates} candidates, {stats.accepted} accepted, "
-        f"{stats.pairs} frame pairs, {seconds:.0f} s",
+        f"{stats.pairs} frame pairs, {time.perf_counter() - start:.0f} s",
         file=sys.stderr,
     )
     commands = []
-    for gt_file, label in dataset.gts:
-        gt = load_ground_truth(data / gt_file)
-        for kind, chosen in (("raw", decisions), ("verified", verified)):
-            print(row(f"{dataset.name}, {method}", label, kind, evaluate(chosen, gt, 0.99)))
+    for (gt_file, label), gt in zip(dataset.gts, truths, strict=True):
+        scored = first.scored_against(gt)  # the same decisions, another ground truth
+        assert scored.verified is not None
+        for kind, figures in (("raw", scored.evaluation), ("verified", scored.verified)):
+            print(row(f"{dataset.name}, {method}", label, kind, figures))
         options = "" if dataset.kappa_s is None else f" --set kappa_s={dataset.kappa_s:g}"
         options += "" if method == "doseqslam" else f" --method {method}"
         commands.append(

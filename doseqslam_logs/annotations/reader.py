@@ -1,19 +1,19 @@
-"""Reading an annotated log back: our channels as plain dicts, and the `doseqslam` metadata.
+"""Reading an annotated log back: our channels and metadata as the typed records of `records`.
 
 Messages are decoded with the definitions embedded in the file (any profile we write: ROS 2
-CDR, ROS 1, JSON), so logs annotated by other versions of the tool read back too. The plain
-form is the one the writers take: times as {"sec", "nsec"}, arrays as lists.
+CDR, ROS 1, JSON), so logs annotated by other versions of the tool read back too: fields a
+version did not write take the records' "not recorded" values.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Schema
@@ -24,30 +24,29 @@ from .records import (
     FRAME_TIMES_ATTACHMENT,
     LOOP_CLOSURE,
     METADATA_NAME,
-    REJECTED,
     SEQUENCE,
-    SKIPPED,
     FrameTimes,
+    LoopClosureRecord,
+    RunMetadata,
+    SequenceRecord,
 )
 
 TOPICS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
 
-NOT_REPORTED = frozenset({REJECTED, SKIPPED})
 
-
-@dataclass
+@dataclass(frozen=True)
 class AnnotatedLog:
     """Our messages in log-time order, and the run's metadata record."""
 
     path: Path
-    loop_closures: list[dict[str, Any]] = field(default_factory=list)
-    sequences: list[dict[str, Any]] = field(default_factory=list)
-    metadata: dict[str, str] = field(default_factory=dict)
+    metadata: RunMetadata
+    loop_closures: tuple[LoopClosureRecord, ...] = ()
+    sequences: tuple[SequenceRecord, ...] = ()
     # Log time and header stamp of every frame by index (None: annotated before 0.2).
     frame_times: FrameTimes | None = None
 
     @property
-    def reported_loop_closures(self) -> list[dict[str, Any]]:
+    def reported_loop_closures(self) -> list[LoopClosureRecord]:
         """The loop closures the run reports: all but those geometric verification rejected
         or skipped.
 
@@ -55,13 +54,23 @@ class AnnotatedLog:
         "skipped") for evaluation and diffs; logs annotated without verification (or before it
         existed) report every pair.
         """
-        return [lc for lc in self.loop_closures if lc.get("verification") not in NOT_REPORTED]
+        return [lc for lc in self.loop_closures if lc.reported]
 
     @property
     def parameters(self) -> dict[str, Any]:
         """The detector parameters recorded in the metadata ({} when absent)."""
-        text = self.metadata.get("parameters")
-        return dict(json.loads(text)) if text else {}
+        return self.metadata.parameters
+
+    def detector_times_ns(self) -> npt.NDArray[np.int64] | None:
+        """The time the detector gave every frame, by index: the header stamp (log time for
+        a frame without one), or the log time with `--time-source log`. None for logs
+        annotated before frame times were recorded."""
+        if self.frame_times is None:
+            return None
+        stamps, log_times = self.frame_times.header_stamps_ns, self.frame_times.log_times_ns
+        if self.metadata.time_source == "log":
+            return np.array(log_times, dtype=np.int64)
+        return np.where(stamps >= 0, stamps, log_times).astype(np.int64)
 
 
 def plain(value: Any) -> Any:
@@ -96,30 +105,43 @@ def _field_names(value: Any) -> list[str]:
 def read_annotations(path: str | Path) -> AnnotatedLog:
     """Our channels and metadata from an annotated MCAP (or a sidecar).
 
-    Raises SourceError when the file cannot be read or holds no `doseqslam` metadata.
+    Raises SourceError when the file cannot be read, holds no `doseqslam` metadata, or holds
+    a message of ours that lacks the fields every version wrote.
     """
-    log = AnnotatedLog(Path(path))
+    file = Path(path)
+    closures: list[dict[str, Any]] = []
+    sequences: list[dict[str, Any]] = []
+    entries: dict[str, str] = {}
+    frame_times: FrameTimes | None = None
     try:
-        with log.path.open("rb") as stream:
+        with file.open("rb") as stream:
             reader = make_reader(stream)
             decoders: dict[int, Any] = {}  # by schema id, for this file
             for schema, channel, message in _our_messages(reader):
                 if schema.id not in decoders:
                     decoders[schema.id] = _decoder(schema, channel.message_encoding)
                 decoded = plain(decoders[schema.id](message.data))
-                target = log.loop_closures if channel.topic == LOOP_CLOSURE.topic else log.sequences
-                target.append(decoded)
+                (closures if channel.topic == LOOP_CLOSURE.topic else sequences).append(decoded)
             for record in reader.iter_metadata():
                 if record.name == METADATA_NAME:
-                    log.metadata = dict(record.metadata)
+                    entries = dict(record.metadata)
             for attachment in reader.iter_attachments():
                 if attachment.name == FRAME_TIMES_ATTACHMENT:
-                    log.frame_times = FrameTimes.from_json(attachment.data)
+                    frame_times = FrameTimes.from_json(attachment.data)
     except (OSError, McapError, ValueError, KeyError) as exc:
         raise SourceError(f"{path}: cannot read the annotations ({exc})") from exc
-    if not log.metadata:
+    if not entries:
         raise SourceError(f"{path}: not annotated by doseqslam-logs (no '{METADATA_NAME}' record)")
-    return log
+    try:
+        return AnnotatedLog(
+            file,
+            RunMetadata.from_entries(entries),
+            tuple(LoopClosureRecord.from_message(m, frame_times) for m in closures),
+            tuple(SequenceRecord.from_message(m) for m in sequences),
+            frame_times,
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SourceError(f"{path}: unusable message on our channels ({exc!r})") from exc
 
 
 def _our_messages(reader: Any) -> Iterator[tuple[Schema, Any, Any]]:

@@ -1,27 +1,24 @@
-"""The detector's decisions as plain message dicts, one per output message.
+"""What our channels hold, as typed records: the one definition shared by writer and readers.
 
-The dicts carry exactly the fields of the definitions in `schemas/` (`LoopClosure`, `Sequence`),
-in the same order, with JSON-friendly values: ints, floats (NaN when missing), bools, strings,
-lists, and times as `{"sec": int, "nsec": int}`. The encoders turn them into CDR, ROS 1 or JSON.
+`LoopClosureRecord` and `SequenceRecord` carry the fields of the definitions in `schemas/`
+(`LoopClosure`, `Sequence`), in the same order; `to_message` gives the plain form the encoders
+take (times as `{"sec": int, "nsec": int}`, arrays as lists, NaN for a missing float) and
+`from_message` reads it back, filling the fields that logs annotated by older versions lack.
+`RunMetadata` is the `doseqslam` metadata record and `FrameTimes` the frame-times attachment.
+`annotations.writer` builds the records from the detector's decisions; `annotations.reader`
+reads them from a file.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
-
-from ..detector.events import Candidate, SequenceDecision
-from ..verification.geometry import Verdict
-from ..verification.stage import PairCheck, VerifiedDecision
-
-# sequence id -> its verification; None for a run without verification (--no-verify).
-Verifications = Mapping[int, VerifiedDecision] | None
 
 NO_STAMP = -1  # header stamp of a frame whose image message has no header
 NANOS_PER_SECOND = 1_000_000_000
@@ -46,6 +43,9 @@ class MessageType:
 # (left unchecked at a high frame rate: the query stride, or a given-up sequence) or "off"
 # (no verification).
 ACCEPTED, REJECTED, SKIPPED, OFF = "accepted", "rejected", "skipped", "off"
+NOT_RECORDED = ""  # the field is absent: the log was annotated before it existed
+# Not loop closures: the pairs verification refused or left unchecked.
+NOT_REPORTED = frozenset({REJECTED, SKIPPED})
 
 LOOP_CLOSURE = MessageType("LoopClosure", OUR_TOPIC_PREFIX + "loop_closures", 0)
 SEQUENCE = MessageType("Sequence", OUR_TOPIC_PREFIX + "sequences", 1)
@@ -54,12 +54,25 @@ MESSAGE_TYPES: tuple[MessageType, ...] = (LOOP_CLOSURE, SEQUENCE)
 
 @dataclass(frozen=True)
 class TimedMessage:
-    """One output message: its type, its MCAP log time and its fields."""
+    """One output message: its record and its MCAP log time."""
 
-    type: MessageType
+    record: LoopClosureRecord | SequenceRecord
     log_time_ns: int
-    index: int  # query index (loop closure) or sequence id: the last sort key
-    fields: dict[str, Any]
+
+    @property
+    def type(self) -> MessageType:
+        return self.record.message_type
+
+    @property
+    def index(self) -> int:
+        """Query index (loop closure) or sequence id: the last sort key."""
+        record = self.record
+        return record.query.index if isinstance(record, LoopClosureRecord) else record.sequence_id
+
+    @property
+    def fields(self) -> dict[str, Any]:
+        """The message in the encoders' plain form."""
+        return self.record.to_message()
 
     @property
     def sort_key(self) -> tuple[int, int, int]:
@@ -133,231 +146,422 @@ def time_dict(time_ns: int) -> dict[str, int]:
     return {"sec": sec, "nsec": nsec}
 
 
-def optional_float(value: float | None) -> float:
-    """None becomes NaN, the documented "missing" value of every float field."""
+def time_ns(value: Mapping[str, Any]) -> int:
+    """A {"sec", "nsec"} message time as nanoseconds."""
+    return int(value["sec"]) * NANOS_PER_SECOND + int(value["nsec"])
+
+
+def optional_float(value: Any) -> float:
+    """None becomes NaN, the documented "missing" value of every float field (the JSON
+    profile writes NaN as null, so it reads back as None too)."""
     return math.nan if value is None else float(value)
 
 
-def loop_closure_messages(
-    decisions: Iterable[SequenceDecision],
-    frame_times: FrameTimes,
-    method: str,
-    parameters_hash: str,
-    verifications: Verifications = None,
-) -> list[TimedMessage]:
-    """One `LoopClosure` message per pair of an accepted decision, with the query's log time.
-
-    With `verifications`, each pair carries its check (rejected pairs included, marked so).
-
-    Raises ValueError when a decision names a frame outside `frame_times` or another method,
-    or a decision has no verification in `verifications`.
-    """
-    messages: list[TimedMessage] = []
-    for decision in decisions:
-        _check_method(decision, method)
-        pairs = decision.loop_closures
-        if not pairs:
-            continue
-        checks = _checks(decision, verifications)
-        match_bounds = (min(p.match_index for p in pairs), max(p.match_index for p in pairs))
-        for z, (pair, check) in enumerate(zip(pairs, checks, strict=True)):
-            fields = {
-                **_loop_closure_fields(
-                    decision, pair, match_bounds, frame_times, method, parameters_hash
-                ),
-                **_verification_fields(pair, check, frame_times),
-                **_proposal_fields(decision, z, check),
-            }
-            log_time = frame_times.log_time(pair.query_index)
-            messages.append(TimedMessage(LOOP_CLOSURE, log_time, pair.query_index, fields))
-    return messages
+def _floats(values: Iterable[Any]) -> tuple[float, ...]:
+    return tuple(optional_float(v) for v in values)
 
 
-def _checks(decision: SequenceDecision, verifications: Verifications) -> Sequence[PairCheck | None]:
-    if verifications is None:
-        return [None] * len(decision.loop_closures)
-    verified = verifications.get(decision.sequence_id)
-    if verified is None or len(verified.checks) != len(decision.loop_closures):
-        raise ValueError(f"sequence {decision.sequence_id} has no verification of its pairs")
-    return verified.checks
+def _ints(values: Iterable[Any]) -> tuple[int, ...]:
+    return tuple(int(v) for v in values)
 
 
-_MODEL_NAMES = {"F": "fundamental", "E": "essential"}
+@dataclass(frozen=True)
+class FrameRef:
+    """One frame as our messages name it: its index, its image message's log time and its
+    header stamp (None when the image had no header)."""
 
+    index: int
+    log_time_ns: int
+    stamp_ns: int | None
 
-def _verification_fields(
-    pair: Candidate, check: PairCheck | None, frame_times: FrameTimes
-) -> dict[str, Any]:
-    refined = pair.match_index if check is None else check.refined_match_index
-    frame = _frame_fields("refined_match", refined, frame_times)
-    if check is None:
+    @property
+    def time_ns(self) -> int:
+        """The time the detector used: the header stamp when there is one, else the log time."""
+        return self.log_time_ns if self.stamp_ns is None else self.stamp_ns
+
+    @classmethod
+    def of(cls, index: int, frame_times: FrameTimes) -> FrameRef:
+        """Raises ValueError for an index outside the frames."""
+        return cls(index, frame_times.log_time(index), frame_times.stamp(index))
+
+    def message_fields(self, prefix: str) -> dict[str, Any]:
         return {
-            "verification": OFF,
-            "inliers": -1,
-            "tentative_matches": -1,
-            "verification_model": "",
-            "rejection_reason": "",
-            **frame,
-            **_pose_fields(None, None, None),
+            f"{prefix}_index": self.index,
+            f"{prefix}_log_time": time_dict(self.log_time_ns),
+            f"{prefix}_stamp": time_dict(0 if self.stamp_ns is None else self.stamp_ns),
+            f"{prefix}_has_stamp": self.stamp_ns is not None,
         }
-    verdict = check.verdict
-    if check.skipped:  # not checked: no counts to record
-        status, inliers, tentative = SKIPPED, -1, -1
-    else:
-        status = ACCEPTED if verdict.accepted else REJECTED
-        inliers, tentative = verdict.inliers, verdict.matches_tested
-    return {
-        "verification": status,
-        "inliers": inliers,
-        "tentative_matches": tentative,
-        "verification_model": _MODEL_NAMES[verdict.model],
-        "rejection_reason": "" if verdict.accepted else verdict.reason,
-        **frame,
-        **_pose_fields(*_accepted_pose(verdict)),
-    }
+
+    @classmethod
+    def from_message(cls, message: Mapping[str, Any], prefix: str) -> FrameRef:
+        stamp = time_ns(message[f"{prefix}_stamp"]) if message[f"{prefix}_has_stamp"] else None
+        return cls(int(message[f"{prefix}_index"]), time_ns(message[f"{prefix}_log_time"]), stamp)
 
 
-def _accepted_pose(verdict: Verdict) -> tuple[Any, Any, Any]:
-    """The relative pose of an accepted pair only: a pair rejected after its fit (rotation
-    limit, bracketing) says why in its reason, not with a pose a consumer might use."""
-    if not verdict.accepted:
-        return None, None, None
-    return verdict.rotation_xyzw, verdict.rotation_deg, verdict.translation_direction
+NAN4 = (math.nan,) * 4
+NAN3 = (math.nan,) * 3
 
 
-def _proposal_fields(decision: SequenceDecision, z: int, check: PairCheck | None) -> dict[str, Any]:
-    """Which trajectory's match the check accepted: 0 the detector's, k its k-th next best."""
-    proposal = 0 if check is None or not check.accepted else check.proposal
-    match = decision.loop_closures[z].match_index
-    if proposal:
-        match = decision.alternatives[proposal - 1].match_indices[z]
-    return {"proposal": proposal, "proposal_match_index": match}
+@dataclass(frozen=True)
+class LoopClosureRecord:
+    """One message of /doseqslam/loop_closures (schemas/*/LoopClosure: what each field means).
 
-
-def _pose_fields(
-    rotation: Sequence[float] | None, degrees: float | None, direction: Sequence[float] | None
-) -> dict[str, Any]:
-    known = rotation is not None and direction is not None
-    return {
-        "has_relative_pose": known,
-        "rotation_xyzw": [float(v) for v in rotation] if rotation else [math.nan] * 4,
-        "rotation_deg": optional_float(degrees),
-        "translation_direction": [float(v) for v in direction] if direction else [math.nan] * 3,
-    }
-
-
-def sequence_messages(
-    decisions: Iterable[SequenceDecision],
-    frame_times: FrameTimes,
-    method: str,
-    parameters_hash: str,
-    verifications: Verifications = None,
-) -> list[TimedMessage]:
-    """One `Sequence` message per decision, with the log time of the sequence's last frame.
-
-    Raises ValueError when a decision names a frame outside `frame_times` or another method.
+    Fields that verification appended read as "not recorded" (`verification` ==
+    NOT_RECORDED, the refined match equal to the match) from logs annotated before them.
     """
-    messages: list[TimedMessage] = []
-    for decision in decisions:
-        _check_method(decision, method)
-        fields = {
-            **_sequence_fields(decision, frame_times, method, parameters_hash),
-            **_sequence_verification(decision, verifications),
+
+    message_type: ClassVar[MessageType] = LOOP_CLOSURE
+
+    query: FrameRef
+    match: FrameRef
+    difference: float
+    sequence_id: int
+    sequence_first_index: int
+    sequence_last_index: int
+    match_first_index: int
+    match_last_index: int
+    gamma: float
+    gamma_previous: float
+    gamma_next: float
+    f: float
+    threshold: float
+    method: str
+    parameters_hash: str
+    verification: str = NOT_RECORDED
+    inliers: int = -1
+    tentative_matches: int = -1
+    verification_model: str = ""
+    rejection_reason: str = ""
+    refined_match: FrameRef | None = None  # None: the match (set so by __post_init__)
+    has_relative_pose: bool = False
+    rotation_xyzw: tuple[float, ...] = NAN4
+    rotation_deg: float = math.nan
+    translation_direction: tuple[float, ...] = NAN3
+    proposal: int = 0
+    proposal_match_index: int = -1  # -1: the match's index (set so by __post_init__)
+
+    def __post_init__(self) -> None:
+        if self.refined_match is None:
+            object.__setattr__(self, "refined_match", self.match)
+        if self.proposal_match_index < 0:
+            object.__setattr__(self, "proposal_match_index", self.match.index)
+
+    @property
+    def reported(self) -> bool:
+        """A loop closure of the run: not rejected nor skipped by verification (a log
+        annotated without verification, or before it existed, reports every pair)."""
+        return self.verification not in NOT_REPORTED
+
+    @property
+    def matched(self) -> FrameRef:
+        """The match a pose graph should use: the refined one."""
+        assert self.refined_match is not None  # __post_init__
+        return self.refined_match
+
+    def to_message(self) -> dict[str, Any]:
+        return {
+            **self.query.message_fields("query"),
+            **self.match.message_fields("match"),
+            "difference": self.difference,
+            "sequence_id": self.sequence_id,
+            "sequence_first_index": self.sequence_first_index,
+            "sequence_last_index": self.sequence_last_index,
+            "match_first_index": self.match_first_index,
+            "match_last_index": self.match_last_index,
+            "gamma": self.gamma,
+            "gamma_previous": self.gamma_previous,
+            "gamma_next": self.gamma_next,
+            "f": self.f,
+            "threshold": self.threshold,
+            "method": self.method,
+            "parameters_hash": self.parameters_hash,
+            "verification": self.verification,
+            "inliers": self.inliers,
+            "tentative_matches": self.tentative_matches,
+            "verification_model": self.verification_model,
+            "rejection_reason": self.rejection_reason,
+            **self.matched.message_fields("refined_match"),
+            "has_relative_pose": self.has_relative_pose,
+            "rotation_xyzw": list(self.rotation_xyzw),
+            "rotation_deg": self.rotation_deg,
+            "translation_direction": list(self.translation_direction),
+            "proposal": self.proposal,
+            "proposal_match_index": self.proposal_match_index,
         }
-        log_time = frame_times.log_time(decision.last_index)
-        messages.append(TimedMessage(SEQUENCE, log_time, decision.sequence_id, fields))
-    return messages
 
-
-def _sequence_verification(
-    decision: SequenceDecision, verifications: Verifications
-) -> dict[str, Any]:
-    if verifications is None:
-        return {"verification": OFF, "verified_pairs": 0, "accepted_pairs": 0, "max_inliers": 0}
-    verified = verifications.get(decision.sequence_id)
-    checks = () if verified is None else verified.checks
-    return {
-        "verification": "on",
-        "verified_pairs": len(checks),
-        "accepted_pairs": sum(check.accepted for check in checks),
-        "max_inliers": max((check.verdict.inliers for check in checks), default=0),
-    }
-
-
-def _check_method(decision: SequenceDecision, method: str) -> None:
-    if decision.method != method:
-        raise ValueError(
-            f"sequence {decision.sequence_id} was decided by {decision.method!r}, not {method!r}"
+    @classmethod
+    def from_message(
+        cls, message: Mapping[str, Any], frame_times: FrameTimes | None = None
+    ) -> LoopClosureRecord:
+        """Raises KeyError, TypeError or ValueError for a message that lacks the fields every
+        version wrote or holds values of the wrong kind. `frame_times` places a refined match
+        that a log recorded without its times (annotated between two versions)."""
+        get = message.get
+        return cls(
+            query=FrameRef.from_message(message, "query"),
+            match=FrameRef.from_message(message, "match"),
+            difference=optional_float(message["difference"]),
+            sequence_id=int(message["sequence_id"]),
+            sequence_first_index=int(message["sequence_first_index"]),
+            sequence_last_index=int(message["sequence_last_index"]),
+            match_first_index=int(message["match_first_index"]),
+            match_last_index=int(message["match_last_index"]),
+            gamma=optional_float(message["gamma"]),
+            gamma_previous=optional_float(message["gamma_previous"]),
+            gamma_next=optional_float(message["gamma_next"]),
+            f=optional_float(message["f"]),
+            threshold=optional_float(message["threshold"]),
+            method=str(message["method"]),
+            parameters_hash=str(message["parameters_hash"]),
+            verification=str(get("verification", NOT_RECORDED)),
+            inliers=int(get("inliers", -1)),
+            tentative_matches=int(get("tentative_matches", -1)),
+            verification_model=str(get("verification_model", "")),
+            rejection_reason=str(get("rejection_reason", "")),
+            refined_match=_refined_match(message, frame_times),
+            has_relative_pose=bool(get("has_relative_pose", False)),
+            rotation_xyzw=_floats(get("rotation_xyzw", NAN4)),
+            rotation_deg=optional_float(get("rotation_deg", math.nan)),
+            translation_direction=_floats(get("translation_direction", NAN3)),
+            proposal=int(get("proposal", 0)),
+            proposal_match_index=int(get("proposal_match_index", -1)),
         )
 
 
-def _frame_fields(prefix: str, index: int, frame_times: FrameTimes) -> dict[str, Any]:
-    stamp = frame_times.stamp(index)
-    return {
-        f"{prefix}_index": index,
-        f"{prefix}_log_time": time_dict(frame_times.log_time(index)),
-        f"{prefix}_stamp": time_dict(0 if stamp is None else stamp),
-        f"{prefix}_has_stamp": stamp is not None,
-    }
+def _refined_match(message: Mapping[str, Any], frame_times: FrameTimes | None) -> FrameRef | None:
+    if "refined_match_log_time" in message:
+        return FrameRef.from_message(message, "refined_match")
+    if "refined_match_index" in message and frame_times is not None:
+        return FrameRef.of(int(message["refined_match_index"]), frame_times)
+    return None  # the match
 
 
-def _decision_values(decision: SequenceDecision) -> dict[str, Any]:
-    return {
-        "gamma": float(decision.gamma),
-        "gamma_previous": optional_float(decision.gamma_previous),
-        "gamma_next": optional_float(decision.gamma_next),
-        "f": float(decision.f),
-        "threshold": float(decision.threshold),
-    }
+@dataclass(frozen=True)
+class SequenceRecord:
+    """One message of /doseqslam/sequences (schemas/*/Sequence: what each field means).
+
+    Times are nanoseconds; floats are NaN when missing. The verification fields read as
+    `verification` == NOT_RECORDED and zeros from logs annotated before they existed.
+    """
+
+    message_type: ClassVar[MessageType] = SEQUENCE
+
+    sequence_id: int
+    first_index: int
+    last_index: int
+    first_log_time_ns: int
+    last_log_time_ns: int
+    first_timestamp_ns: int
+    last_timestamp_ns: int
+    database_size: int
+    has_candidate: bool
+    best_start: int  # -1 without a candidate
+    best_velocity: float
+    best_score: float
+    second_score: float
+    gamma: float
+    gamma_previous: float
+    gamma_next: float
+    f: float
+    threshold: float
+    accepted: bool
+    candidate_query_indices: tuple[int, ...]
+    candidate_match_indices: tuple[int, ...]
+    candidate_differences: tuple[float, ...]
+    method: str
+    parameters_hash: str
+    verification: str = NOT_RECORDED  # "on", "off", or not recorded
+    verified_pairs: int = 0
+    accepted_pairs: int = 0
+    max_inliers: int = 0
+
+    def to_message(self) -> dict[str, Any]:
+        return {
+            "sequence_id": self.sequence_id,
+            "first_index": self.first_index,
+            "last_index": self.last_index,
+            "first_log_time": time_dict(self.first_log_time_ns),
+            "last_log_time": time_dict(self.last_log_time_ns),
+            "first_timestamp": time_dict(self.first_timestamp_ns),
+            "last_timestamp": time_dict(self.last_timestamp_ns),
+            "database_size": self.database_size,
+            "has_candidate": self.has_candidate,
+            "best_start": self.best_start,
+            "best_velocity": self.best_velocity,
+            "best_score": self.best_score,
+            "second_score": self.second_score,
+            "gamma": self.gamma,
+            "gamma_previous": self.gamma_previous,
+            "gamma_next": self.gamma_next,
+            "f": self.f,
+            "threshold": self.threshold,
+            "accepted": self.accepted,
+            "candidate_query_indices": list(self.candidate_query_indices),
+            "candidate_match_indices": list(self.candidate_match_indices),
+            "candidate_differences": list(self.candidate_differences),
+            "method": self.method,
+            "parameters_hash": self.parameters_hash,
+            "verification": self.verification,
+            "verified_pairs": self.verified_pairs,
+            "accepted_pairs": self.accepted_pairs,
+            "max_inliers": self.max_inliers,
+        }
+
+    @classmethod
+    def from_message(cls, message: Mapping[str, Any]) -> SequenceRecord:
+        """Raises KeyError, TypeError or ValueError for a message that lacks the fields every
+        version wrote or holds values of the wrong kind."""
+        get = message.get
+        return cls(
+            sequence_id=int(message["sequence_id"]),
+            first_index=int(message["first_index"]),
+            last_index=int(message["last_index"]),
+            first_log_time_ns=time_ns(message["first_log_time"]),
+            last_log_time_ns=time_ns(message["last_log_time"]),
+            first_timestamp_ns=time_ns(message["first_timestamp"]),
+            last_timestamp_ns=time_ns(message["last_timestamp"]),
+            database_size=int(message["database_size"]),
+            has_candidate=bool(message["has_candidate"]),
+            best_start=int(message["best_start"]),
+            best_velocity=optional_float(message["best_velocity"]),
+            best_score=optional_float(message["best_score"]),
+            second_score=optional_float(message["second_score"]),
+            gamma=optional_float(message["gamma"]),
+            gamma_previous=optional_float(message["gamma_previous"]),
+            gamma_next=optional_float(message["gamma_next"]),
+            f=optional_float(message["f"]),
+            threshold=optional_float(message["threshold"]),
+            accepted=bool(message["accepted"]),
+            candidate_query_indices=_ints(message["candidate_query_indices"]),
+            candidate_match_indices=_ints(message["candidate_match_indices"]),
+            candidate_differences=_floats(message["candidate_differences"]),
+            method=str(message["method"]),
+            parameters_hash=str(message["parameters_hash"]),
+            verification=str(get("verification", NOT_RECORDED)),
+            verified_pairs=int(get("verified_pairs", 0)),
+            accepted_pairs=int(get("accepted_pairs", 0)),
+            max_inliers=int(get("max_inliers", 0)),
+        )
 
 
-def _loop_closure_fields(
-    decision: SequenceDecision,
-    pair: Candidate,
-    match_bounds: tuple[int, int],
-    frame_times: FrameTimes,
-    method: str,
-    parameters_hash: str,
-) -> dict[str, Any]:
-    return {
-        **_frame_fields("query", pair.query_index, frame_times),
-        **_frame_fields("match", pair.match_index, frame_times),
-        "difference": float(pair.difference),
-        "sequence_id": decision.sequence_id,
-        "sequence_first_index": decision.first_index,
-        "sequence_last_index": decision.last_index,
-        "match_first_index": match_bounds[0],
-        "match_last_index": match_bounds[1],
-        **_decision_values(decision),
-        "method": method,
-        "parameters_hash": parameters_hash,
-    }
+def _optional_int(text: str) -> int | None:
+    return int(text) if text else None
 
 
-def _sequence_fields(
-    decision: SequenceDecision, frame_times: FrameTimes, method: str, parameters_hash: str
-) -> dict[str, Any]:
-    candidates: Sequence[Candidate] = decision.candidates
-    has_candidate = decision.best_start is not None
-    return {
-        "sequence_id": decision.sequence_id,
-        "first_index": decision.first_index,
-        "last_index": decision.last_index,
-        "first_log_time": time_dict(frame_times.log_time(decision.first_index)),
-        "last_log_time": time_dict(frame_times.log_time(decision.last_index)),
-        "first_timestamp": time_dict(decision.first_timestamp_ns),
-        "last_timestamp": time_dict(decision.last_timestamp_ns),
-        "database_size": decision.database_size,
-        "has_candidate": has_candidate,
-        "best_start": decision.best_start if decision.best_start is not None else -1,
-        "best_velocity": optional_float(decision.best_velocity),
-        "best_score": optional_float(decision.best_score),
-        "second_score": optional_float(decision.second_score),
-        **_decision_values(decision),
-        "accepted": decision.accepted,
-        "candidate_query_indices": [c.query_index for c in candidates],
-        "candidate_match_indices": [c.match_index for c in candidates],
-        "candidate_differences": [float(c.difference) for c in candidates],
-        "method": method,
-        "parameters_hash": parameters_hash,
-    }
+@dataclass(frozen=True)
+class RunMetadata:
+    """The `doseqslam` metadata record: what the run was given and what it did, nothing that
+    varies between runs. Entries are strings in the file; JSON-valued ones are kept as their
+    text (so a record reads back and writes out the same bytes) with parsed properties.
+
+    The verification entries are written only when `verification` is "on". `recorded` is the
+    record as read, every key included (also those of other versions), for diffs and reports;
+    it is empty for a record built by the pipeline.
+    """
+
+    tool_version: str
+    method: str
+    parameters_json: str  # "parameters": canonical JSON of every detector parameter
+    parameters_hash: str
+    feature_detector: str
+    source_file: str
+    source_sha256: str
+    image_topic: str
+    time_source: str  # "header" or "log"
+    start_ns: int | None
+    end_ns: int | None
+    on_error: str
+    image_messages: int
+    frames_used: int
+    frames_skipped: int
+    frames_skipped_by_reason_json: str
+    first_skipped_by_reason_json: str
+    log_time_fallbacks: int
+    clock_jumps: int
+    first_clock_jump: str
+    recovered_json: str  # "" unless --recover salvaged the input
+    verification: str  # "on" or "off"
+    sequences: int
+    loop_closures: int  # reported: the accepted pairs with verification on
+    verification_parameters_json: str = ""
+    verification_hash: str = ""
+    intrinsics_json: str = ""  # [fx, fy, cx, cy], "" without intrinsics
+    intrinsics_source: str = ""
+    verified_pairs: int = 0
+    accepted_pairs: int = 0
+    tool: str = "doseqslam-logs"
+    recorded: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
+
+    # entry key -> field name, in the order the entries are written
+    _KEYS: ClassVar[tuple[tuple[str, str], ...]] = (
+        ("tool", "tool"),
+        ("tool_version", "tool_version"),
+        ("method", "method"),
+        ("parameters", "parameters_json"),
+        ("parameters_hash", "parameters_hash"),
+        ("feature_detector", "feature_detector"),
+        ("source_file", "source_file"),
+        ("source_sha256", "source_sha256"),
+        ("image_topic", "image_topic"),
+        ("time_source", "time_source"),
+        ("start_ns", "start_ns"),
+        ("end_ns", "end_ns"),
+        ("on_error", "on_error"),
+        ("image_messages", "image_messages"),
+        ("frames_used", "frames_used"),
+        ("frames_skipped", "frames_skipped"),
+        ("frames_skipped_by_reason", "frames_skipped_by_reason_json"),
+        ("first_skipped_by_reason", "first_skipped_by_reason_json"),
+        ("log_time_fallbacks", "log_time_fallbacks"),
+        ("clock_jumps", "clock_jumps"),
+        ("first_clock_jump", "first_clock_jump"),
+        ("recovered", "recovered_json"),
+        ("verification", "verification"),
+        ("sequences", "sequences"),
+        ("loop_closures", "loop_closures"),
+    )
+    _VERIFICATION_KEYS: ClassVar[tuple[tuple[str, str], ...]] = (
+        ("verification_parameters", "verification_parameters_json"),
+        ("verification_hash", "verification_hash"),
+        ("intrinsics", "intrinsics_json"),
+        ("intrinsics_source", "intrinsics_source"),
+        ("verified_pairs", "verified_pairs"),
+        ("accepted_pairs", "accepted_pairs"),
+    )
+    _OPTIONAL_INTS: ClassVar[frozenset[str]] = frozenset({"start_ns", "end_ns"})
+
+    @property
+    def parameters(self) -> dict[str, Any]:
+        """The detector parameters as recorded ({} when absent)."""
+        return dict(json.loads(self.parameters_json)) if self.parameters_json else {}
+
+    @property
+    def intrinsics(self) -> tuple[float, ...] | None:
+        return _floats(json.loads(self.intrinsics_json)) if self.intrinsics_json else None
+
+    def to_entries(self) -> dict[str, str]:
+        """The record as written: strings, in a fixed order."""
+        keys = self._KEYS + (self._VERIFICATION_KEYS if self.verification == "on" else ())
+        return {key: self._text(name) for key, name in keys}
+
+    def _text(self, name: str) -> str:
+        value = getattr(self, name)
+        return "" if value is None else str(value)
+
+    @classmethod
+    def from_entries(cls, entries: Mapping[str, str]) -> RunMetadata:
+        """A record as read; entries that a version did not write take their defaults
+        ("", 0, None; verification "off"). Raises ValueError for a count that is not a number."""
+        values: dict[str, Any] = {}
+        for key, name in cls._KEYS + cls._VERIFICATION_KEYS:
+            text = entries.get(key, "")
+            kind = cls.__dataclass_fields__[name].type
+            if name in cls._OPTIONAL_INTS:
+                values[name] = _optional_int(text)
+            elif kind == "int":
+                values[name] = int(text) if text else 0
+            else:
+                values[name] = text
+        values["verification"] = values["verification"] or OFF
+        values["tool"] = values["tool"] or "doseqslam-logs"
+        return cls(**values, recorded=dict(entries))

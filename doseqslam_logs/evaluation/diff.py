@@ -21,14 +21,13 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..annotations.reader import AnnotatedLog, read_annotations
-from ..annotations.records import NANOS_PER_SECOND, FrameTimes
-from ..errors import SourceError
+from ..annotations.records import NANOS_PER_SECOND, NOT_RECORDED, LoopClosureRecord
 
 # Metadata differences listed first, in this order; the others follow by name.
 FIRST_METADATA = (
@@ -178,42 +177,24 @@ class LogDiff:
         return "\n".join(lines)
 
 
-def time_ns(time: dict[str, int]) -> int:
-    """A {"sec", "nsec"} message time in nanoseconds."""
-    return int(time["sec"]) * NANOS_PER_SECOND + int(time["nsec"])
-
-
-def frame_time_ns(loop_closure: dict[str, Any], prefix: str) -> int:
-    """The `prefix` frame's header stamp when it has one, else its log time."""
-    if loop_closure.get(f"{prefix}_has_stamp"):
-        return time_ns(loop_closure[f"{prefix}_stamp"])
-    return time_ns(loop_closure[f"{prefix}_log_time"])
-
-
-def candidate_pair(loop_closure: dict[str, Any]) -> Pair:
+def candidate_pair(loop_closure: LoopClosureRecord) -> Pair:
     """The pair as the detector proposed it (the match before any refinement)."""
     return Pair(
-        frame_time_ns(loop_closure, "query"),
-        frame_time_ns(loop_closure, "match"),
-        int(loop_closure["query_index"]),
-        int(loop_closure["match_index"]),
-        loop_closure.get("verification"),
+        loop_closure.query.time_ns,
+        loop_closure.match.time_ns,
+        loop_closure.query.index,
+        loop_closure.match.index,
+        loop_closure.verification or None,  # None: not recorded (before verification)
     )
 
 
-def reported_pair(loop_closure: dict[str, Any], frame_times: FrameTimes | None) -> Pair:
+def reported_pair(loop_closure: LoopClosureRecord) -> Pair:
     """The pair as the run reports it: with the refined match when verification refined it."""
     pair = candidate_pair(loop_closure)
-    if "refined_match_log_time" in loop_closure:
-        match_time = frame_time_ns(loop_closure, "refined_match")
-    elif "refined_match_index" in loop_closure and frame_times is not None:
-        index = int(loop_closure["refined_match_index"])
-        stamp = frame_times.stamp(index)
-        match_time = frame_times.log_time(index) if stamp is None else stamp
-    else:
-        return pair
-    index = int(loop_closure.get("refined_match_index", pair.match_index))
-    return Pair(pair.query_time_ns, match_time, pair.query_index, index, pair.verification)
+    refined = loop_closure.matched
+    return Pair(
+        pair.query_time_ns, refined.time_ns, pair.query_index, refined.index, pair.verification
+    )
 
 
 def match_pairs(a: Sequence[Pair], b: Sequence[Pair], tolerance_ns: int = 0) -> Matching:
@@ -285,12 +266,13 @@ def verdict_changes(a: AnnotatedLog, b: AnnotatedLog, tolerance_ns: int) -> Verd
 
 def _records_verification(log: AnnotatedLog) -> bool:
     """Logs annotated before verification existed lack the field on every pair."""
-    return any("verification" in lc for lc in log.loop_closures)
+    return any(lc.verification != NOT_RECORDED for lc in log.loop_closures)
 
 
 def parameter_differences(a: AnnotatedLog, b: AnnotatedLog) -> list[ValueDifference]:
     """Every recorded parameter that differs, by dotted name (see `recorded_parameters`)."""
-    params_a, params_b = recorded_parameters(a.metadata), recorded_parameters(b.metadata)
+    params_a = recorded_parameters(a.metadata.recorded)
+    params_b = recorded_parameters(b.metadata.recorded)
     return [
         ValueDifference(name, params_a.get(name), params_b.get(name))
         for name in sorted(set(params_a) | set(params_b))
@@ -298,7 +280,7 @@ def parameter_differences(a: AnnotatedLog, b: AnnotatedLog) -> list[ValueDiffere
     ]
 
 
-def recorded_parameters(metadata: dict[str, str]) -> dict[str, Any]:
+def recorded_parameters(metadata: Mapping[str, str]) -> dict[str, Any]:
     """The JSON parameter sets of the metadata, flat: "parameters" by name, any other
     "X_parameters" record (e.g. of the verification stage) as "X.name"."""
     flat: dict[str, Any] = {}
@@ -330,13 +312,14 @@ def _flatten(prefix: str, value: Any, into: dict[str, Any]) -> None:
 
 def metadata_differences(a: AnnotatedLog, b: AnnotatedLog) -> list[ValueDifference]:
     """Every other metadata value that differs (the source's hash goes into a warning)."""
-    keys = set(a.metadata) | set(b.metadata)
+    entries_a, entries_b = a.metadata.recorded, b.metadata.recorded
+    keys = set(entries_a) | set(entries_b)
     compared = [k for k in keys if not _is_parameters_key(k) and k != "source_sha256"]
     ordered = sorted(compared, key=_metadata_rank)
     return [
-        ValueDifference(key, a.metadata.get(key), b.metadata.get(key))
+        ValueDifference(key, entries_a.get(key), entries_b.get(key))
         for key in ordered
-        if a.metadata.get(key) != b.metadata.get(key)
+        if entries_a.get(key) != entries_b.get(key)
     ]
 
 
@@ -363,10 +346,10 @@ def summarize(log: AnnotatedLog, reported: int) -> LogSummary:
     meta = log.metadata
     return LogSummary(
         str(log.path),
-        meta.get("tool_version", ""),
-        meta.get("parameters_hash", ""),
-        meta.get("source_file", ""),
-        meta.get("source_sha256", ""),
+        meta.tool_version,
+        meta.parameters_hash,
+        meta.source_file,
+        meta.source_sha256,
         len(log.loop_closures),
         reported,
     )
@@ -399,10 +382,7 @@ def diff_logs(
 
 
 def _reported_pairs(log: AnnotatedLog) -> list[Pair]:
-    try:
-        return [reported_pair(lc, log.frame_times) for lc in log.reported_loop_closures]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise SourceError(f"{log.path}: unusable loop closure message ({exc!r})") from exc
+    return [reported_pair(lc) for lc in log.reported_loop_closures]
 
 
 # --- JSON and table helpers -------------------------------------------------------------

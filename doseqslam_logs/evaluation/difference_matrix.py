@@ -49,10 +49,6 @@ class DifferenceMatrix:
     window: int  # enhancement window in kept frames (0 when not enhanced)
 
 
-def _optional_int(text: str | None) -> int | None:
-    return int(text) if text else None
-
-
 def _wanted_frames(log: AnnotatedLog, max_side: int) -> tuple[npt.NDArray[np.int64], int]:
     frames = frame_count(log)
     if frames == 0:
@@ -91,7 +87,7 @@ def _frames_by_decoding(
     """Logs without frame times: decode every frame as the run did and keep the wanted ones."""
     keep = set(wanted.tolist())
     topic, start, end = _run_range(log)
-    time_source: TimeSource = "log" if log.metadata.get("time_source") == "log" else "header"
+    time_source: TimeSource = "log" if log.metadata.time_source == "log" else "header"
     with open_source(content) as source:
         messages = source.image_messages(topic, start, end)
         for frame in decoded_frames(messages, FrameCounts(), time_source, "skip"):
@@ -100,12 +96,10 @@ def _frames_by_decoding(
 
 
 def _run_range(log: AnnotatedLog) -> tuple[str, int | None, int | None]:
-    topic = log.metadata.get("image_topic", "")
+    topic = log.metadata.image_topic
     if not topic:
         raise SourceError(f"{log.path}: the metadata names no image topic")
-    start = _optional_int(log.metadata.get("start_ns"))
-    end = _optional_int(log.metadata.get("end_ns"))
-    return topic, start, end
+    return topic, log.metadata.start_ns, log.metadata.end_ns
 
 
 def _parameters(log: AnnotatedLog) -> Parameters:
@@ -139,7 +133,7 @@ def difference_matrix(
     if len(found) != wanted.size:
         raise SourceError(
             f"{content}: found {len(found)} of the {wanted.size} frames to draw on "
-            f"{log.metadata.get('image_topic')}: not the log this run was annotated from?"
+            f"{log.metadata.image_topic}: not the log this run was annotated from?"
         )
     store = FrameStore(params.image_width * params.image_height, params.difference_precision)
     for index in found:

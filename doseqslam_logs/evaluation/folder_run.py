@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +19,7 @@ from ..detector.events import SequenceDecision
 from ..errors import GroundTruthError
 from ..pipeline.replay import ReplayResult, replay
 from ..pipeline.reread import FolderFrameReader
-from ..sources.image_folder import folder_frames, list_images
+from ..sources.image_folder import folder_frames, folder_time_ns, list_images
 from ..verification import (
     DEFAULT_VERIFICATION,
     Intrinsics,
@@ -111,6 +111,14 @@ class FolderEvaluation:
         side_by_side = format_side_by_side(self.evaluation, self.verified, threshold_note)
         return f"{headline}; {self.verification.describe()}\n{side_by_side}"
 
+    def scored_against(self, gt: GroundTruth, tolerance: int = 0) -> FolderEvaluation:
+        """The same run's decisions scored against another ground truth (no new run).
+
+        Raises GroundTruthError when `gt` does not have one row per image of the run.
+        """
+        scores = _scores(self.result, self.verification, gt, self.params, self.fps, tolerance)
+        return replace(self, **scores)
+
     def to_json_dict(self) -> dict[str, Any]:
         """The `evaluate --images --json` document."""
         verification = self.verification
@@ -164,11 +172,28 @@ def evaluate_folder(
         expected(len(files))
     result = replay(folder_frames(images, fps), make_detector(params), progress)
     checked = None if verification is None else _verify(files, result, verification, intrinsics)
-    score = evaluate(result.decisions, truth, params.threshold, tolerance)
+    scores = _scores(result, checked, truth, params, fps, tolerance)
+    return FolderEvaluation(images, fps, params, result, verification=checked, **scores)
+
+
+def _scores(
+    result: ReplayResult,
+    checked: FolderVerification | None,
+    gt: GroundTruth,
+    params: Parameters,
+    fps: float,
+    tolerance: int,
+) -> dict[str, Any]:
+    """The raw and verified figures at the run's th, with the revisit coverage."""
+    times = [folder_time_ns(index, fps) for index in range(result.frames)]
+    th = params.threshold
     verified = None
     if checked is not None:
-        verified = evaluate(checked.decisions, truth, params.threshold, tolerance)
-    return FolderEvaluation(images, fps, params, result, score, checked, verified)
+        verified = evaluate(checked.decisions, gt, th, tolerance, times)
+    return {
+        "evaluation": evaluate(result.decisions, gt, th, tolerance, times),
+        "verified": verified,
+    }
 
 
 def _verify(

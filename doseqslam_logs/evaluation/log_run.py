@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..annotations.reader import NOT_REPORTED, AnnotatedLog, read_annotations
+from ..annotations.reader import AnnotatedLog, read_annotations
 from ..errors import UsageError
 from ..pipeline.annotate import source_sha256
 from ..sources import open_source
@@ -31,7 +31,7 @@ from .pose_ground_truth import (
     frame_poses,
     pose_ground_truth,
 )
-from .recorded_run import LogEvaluation, evaluate_annotated_log, format_log_report, matched_index
+from .recorded_run import LogEvaluation, evaluate_annotated_log, format_log_report
 
 
 @dataclass(frozen=True)
@@ -130,14 +130,14 @@ def _plots_module() -> ModuleType:
 def _content_log(options: LogEvaluationOptions, log: AnnotatedLog) -> Path:
     """The log that holds the images and poses: --source, else OUT.mcap when it is a full copy."""
     if options.source is not None:
-        recorded = log.metadata.get("source_sha256", "")
+        recorded = log.metadata.source_sha256
         if recorded and source_sha256(options.source) != recorded:
             raise UsageError(
                 f"{options.source}: not the log {log.path} was annotated from "
-                f"({log.metadata.get('source_file', '?')}, sha256 differs)"
+                f"({log.metadata.source_file}, sha256 differs)"
             )
         return Path(options.source)
-    topic = log.metadata.get("image_topic", "")
+    topic = log.metadata.image_topic
     with open_source(log.path) as source:
         topics = {channel.topic for channel in source.channels()}
     if topic not in topics:
@@ -174,7 +174,7 @@ class _Inputs:
                 f"{self.log.path}: annotated by an older version without frame times; "
                 "annotate the log again to use its poses"
             )
-        times = frame_pose_times(self.log.frame_times, self.log.metadata.get("time_source", ""))
+        times = frame_pose_times(self.log.frame_times, self.log.metadata.time_source)
         return frame_poses(self.track(topic), times)
 
 
@@ -213,9 +213,9 @@ def _renamed(result: LogEvaluation, name: str) -> LogEvaluation:
 def _headline(log: AnnotatedLog) -> str:
     meta = log.metadata
     return (
-        f"{meta.get('method', '?')} run recorded in {log.path} (source {meta.get('source_file')}, "
-        f"{meta.get('image_topic')}, parameters {meta.get('parameters_hash')}, annotated by "
-        f"doseqslam-logs {meta.get('tool_version')})"
+        f"{meta.method} run recorded in {log.path} (source {meta.source_file}, "
+        f"{meta.image_topic}, parameters {meta.parameters_hash}, annotated by "
+        f"doseqslam-logs {meta.tool_version})"
     )
 
 
@@ -226,14 +226,14 @@ def _json_document(
     return {
         "tool_version": __version__,
         "log": str(log.path),
-        "annotated_by": meta.get("tool_version"),
-        "source_file": meta.get("source_file"),
-        "image_topic": meta.get("image_topic"),
-        "time_source": meta.get("time_source"),
-        "method": meta.get("method"),
-        "parameters_hash": meta.get("parameters_hash"),
+        "annotated_by": meta.tool_version,
+        "source_file": meta.source_file,
+        "image_topic": meta.image_topic,
+        "time_source": meta.time_source,
+        "method": meta.method,
+        "parameters_hash": meta.parameters_hash,
         "parameters": log.parameters,
-        "verification": meta.get("verification", "off"),
+        "verification": meta.verification,
         "ground_truth": gt_info,
         **result.raw.to_json_dict(),
         "verified": None if result.verified is None else result.verified.to_json_dict(),
@@ -246,12 +246,11 @@ def _json_document(
 
 def detections(plots: ModuleType, log: AnnotatedLog, gt: GroundTruth, tolerance: int) -> list[Any]:
     """Every pair on /doseqslam/loop_closures, true or false (rejected ones marked so)."""
-    pairs = [(int(lc["query_index"]), matched_index(lc)) for lc in log.loop_closures]
+    pairs = [(lc.query.index, lc.matched.index) for lc in log.loop_closures]
     truth = gt.are_true([q for q, _ in pairs], [m for _, m in pairs], tolerance)
     found = []
     for lc, (query, match), true in zip(log.loop_closures, pairs, truth, strict=True):
-        verdict = lc.get("verification")
-        status = verdict if verdict in NOT_REPORTED else ("tp" if true else "fp")
+        status = lc.verification if not lc.reported else ("tp" if true else "fp")
         found.append(plots.Detection(query, match, status))
     return found
 
@@ -267,9 +266,7 @@ def _draw(plots: ModuleType, inputs: _Inputs, gt: GroundTruth, result: LogEvalua
     except OSError as exc:
         raise UsageError(f"{folder}: cannot create the picture folder ({exc.strerror})") from exc
     meta = log.metadata
-    title = (
-        f"{log.path.name} | {meta.get('image_topic')} | parameters {meta.get('parameters_hash')}"
-    )
+    title = f"{log.path.name} | {meta.image_topic} | parameters {meta.parameters_hash}"
     marked = detections(plots, log, gt, options.tolerance)
     written = [plots.plot_pr_curve(folder / "pr_curve.png", result.raw, result.verified, title)]
     matrix = difference_matrix(inputs.content, log)

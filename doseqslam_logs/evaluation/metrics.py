@@ -32,6 +32,9 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 _LENGTH_PERCENTILES = (10, 25, 75, 90)
+# Window lengths of the revisit coverage, in seconds of the detector's timestamps.
+COVERAGE_WINDOWS_S = (1.0, 5.0)
+NANOS_PER_SECOND = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -63,6 +66,27 @@ class LengthStats:
 
 
 @dataclass(frozen=True)
+class RevisitCoverage:
+    """How much of the time spent revisiting got at least one loop closure.
+
+    The run's time is cut into windows of `window_s` seconds (from its first frame). `windows`
+    counts those holding a revisit (a frame with a loop event in the ground truth), `covered`
+    those of them holding the query frame of a true reported pair. At 10 Hz a revisit lasts
+    many frames: frame recall counts each of them, coverage asks whether each second (or
+    five) of the revisit was recognized at all, which is what a pose graph needs.
+    """
+
+    window_s: float
+    windows: int
+    covered: int
+
+    @property
+    def share(self) -> float:
+        """covered / windows (0.0 without a revisit)."""
+        return self.covered / self.windows if self.windows else 0.0
+
+
+@dataclass(frozen=True)
 class Evaluation:
     """A run scored against one ground truth at one threshold, plus its whole PR curve.
 
@@ -89,6 +113,8 @@ class Evaluation:
     threshold_at_r_p100: float | None
     recall_at_p90: float
     curve: tuple[CurvePoint, ...]
+    # At th, per window length; () when the frames' times were not given.
+    coverage: tuple[RevisitCoverage, ...] = ()
 
     def recall_at_precision(self, precision: float) -> float:
         """Highest recall among curve points whose precision is >= `precision` (0.0 if none)."""
@@ -98,6 +124,7 @@ class Evaluation:
         """The evaluation as plain JSON types (dicts, lists, str, int, float, bool, None)."""
         result = asdict(self)
         result["curve"] = [asdict(point) for point in self.curve]
+        result["coverage"] = [{**asdict(c), "share": c.share} for c in self.coverage]
         return result
 
 
@@ -108,6 +135,9 @@ class _Sweep:
     f: FloatArray
     cum_tp: IntArray
     cum_fp: IntArray
+    queries: IntArray  # each reported query frame once, with the rank of its decision
+    ranks: IntArray
+    true: npt.NDArray[np.bool_]
 
     def counts_at(self, threshold: float) -> tuple[int, int, int]:
         """(decisions, TP, FP) reported at `threshold`: every decision with f < threshold."""
@@ -116,17 +146,24 @@ class _Sweep:
             return 0, 0, 0
         return entered, int(self.cum_tp[entered - 1]), int(self.cum_fp[entered - 1])
 
+    def true_queries_at(self, threshold: float) -> IntArray:
+        """The query frames of the true pairs reported at `threshold`."""
+        entered = int(np.searchsorted(self.f, threshold, side="left"))
+        return self.queries[self.true & (self.ranks < entered)]
+
 
 def evaluate(
     decisions: Sequence[SequenceDecision],
     gt: GroundTruth,
     threshold: float,
     tolerance: int = 0,
+    frame_times_ns: npt.ArrayLike | None = None,
 ) -> Evaluation:
     """Score `decisions` against `gt` at `threshold` and sweep the precision-recall curve.
 
     The sweep sorts decisions by f once and accumulates TP/FP counts (O(n log n)); decisions
-    with equal f enter the curve together.
+    with equal f enter the curve together. With `frame_times_ns` (the detector's time of
+    every frame, by index) the revisit coverage is measured too (`RevisitCoverage`).
 
     Raises:
         GroundTruthError: a frame index of the run lies outside the ground truth
@@ -162,7 +199,28 @@ def evaluate(
         threshold_at_r_p100=best.threshold if best else None,
         recall_at_p90=_recall_at_precision(curve, 0.9),
         curve=curve,
+        coverage=_coverage(sweep.true_queries_at(threshold), gt, frame_times_ns),
     )
+
+
+def _coverage(
+    found: IntArray, gt: GroundTruth, frame_times_ns: npt.ArrayLike | None
+) -> tuple[RevisitCoverage, ...]:
+    if frame_times_ns is None:
+        return ()
+    times = np.asarray(frame_times_ns, dtype=np.int64)
+    if times.size == 0:
+        return tuple(RevisitCoverage(w, 0, 0) for w in COVERAGE_WINDOWS_S)
+    revisits = gt.query_rows()
+    revisits = revisits[revisits < times.size]
+    found = found[found < times.size]
+    result = []
+    for window_s in COVERAGE_WINDOWS_S:
+        width = round(window_s * NANOS_PER_SECOND)
+        holding = np.unique((times[revisits] - times[0]) // width)
+        covered = np.intersect1d(holding, (times[found] - times[0]) // width)
+        result.append(RevisitCoverage(window_s, int(holding.size), int(covered.size)))
+    return tuple(result)
 
 
 # -- the sweep ----------------------------------------------------------------------------
@@ -203,6 +261,9 @@ def _sweep(decisions: Sequence[SequenceDecision], gt: GroundTruth, tolerance: in
         f=f_all[order],
         cum_tp=np.cumsum(tp).astype(np.int64),
         cum_fp=np.cumsum(fp).astype(np.int64),
+        queries=q[first],
+        ranks=rank[first],
+        true=np.asarray(truth, dtype=bool),
     )
 
 
@@ -307,6 +368,7 @@ def format_report(evaluation: Evaluation) -> str:
         f"recall           : {_percent(e.recall)} ({e.tp} of {e.gt_loop_events} loop events)",
         f"R@P100           : {_percent(e.r_p100)} at th = {r_p100_th}",
         f"recall at P>=0.9 : {_percent(e.recall_at_p90)}",
+        *_coverage_lines(e),
     ]
     if e.frames != e.gt_frames:
         lines.append(
@@ -314,6 +376,21 @@ def format_report(evaluation: Evaluation) -> str:
             f"{e.gt_frames}; recall counts every loop event of the ground truth"
         )
     return "\n".join(lines)
+
+
+def _coverage_cell(c: RevisitCoverage) -> str:
+    return f"{_percent(c.share)} ({c.covered} of {c.windows})"
+
+
+def _coverage_row(c: RevisitCoverage) -> str:
+    return f"coverage {c.window_s:g} s"
+
+
+def _coverage_lines(e: Evaluation) -> list[str]:
+    """Revisit coverage at th, one line per window length (none without frame times)."""
+    return [
+        f"{_coverage_row(c):<17}: {_coverage_cell(c)} windows with a revisit" for c in e.coverage
+    ]
 
 
 def _column(e: Evaluation) -> list[str]:
@@ -325,6 +402,7 @@ def _column(e: Evaluation) -> list[str]:
         f"{_percent(e.recall)} ({e.tp} of {e.gt_loop_events})",
         f"{_percent(e.r_p100)} at th = {th}",
         _percent(e.recall_at_p90),
+        *(_coverage_cell(c) for c in e.coverage),
     ]
 
 
@@ -351,7 +429,8 @@ def format_side_by_side(raw: Evaluation, verified: Evaluation | None, threshold_
     width = max(len(cell) for cell in columns[0]) + 3
     if verified is not None:
         lines.append(f"{'':17}  {'raw (all candidates)':<{width}}verified (accepted pairs)")
-    for row, cells in zip(_ROWS, zip(*columns, strict=True), strict=True):
+    rows = _ROWS + tuple(_coverage_row(c) for c in raw.coverage)
+    for row, cells in zip(rows, zip(*columns, strict=True), strict=True):
         lines.append(f"{row:<17}: " + "".join(f"{cell:<{width}}" for cell in cells).rstrip())
     return "\n".join(lines)
 

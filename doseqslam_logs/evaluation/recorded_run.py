@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
 
 from ..annotations.reader import AnnotatedLog
-from ..annotations.records import ACCEPTED, NANOS_PER_SECOND, REJECTED, SKIPPED, FrameTimes
+from ..annotations.records import ACCEPTED, REJECTED, SKIPPED, FrameTimes, SequenceRecord
 from ..detector.events import Candidate, SequenceDecision
 from ..errors import GroundTruthError, UsageError
 from .groundtruth import GroundTruth
@@ -35,34 +34,23 @@ class LogEvaluation:
     verified: Evaluation | None
 
 
-def time_ns(value: Mapping[str, Any]) -> int:
-    """A {"sec", "nsec"} time as nanoseconds."""
-    return int(value["sec"]) * NANOS_PER_SECOND + int(value["nsec"])
-
-
-def _optional(value: Any) -> float | None:
-    """NaN is the messages' "missing" float; None is the decision's."""
-    number = float(value)
-    return None if math.isnan(number) else number
-
-
-def matched_index(loop_closure: Mapping[str, Any]) -> int:
-    """The matched frame of a pair: the refined match when verification recorded one."""
-    return int(loop_closure.get("refined_match_index", loop_closure["match_index"]))
+def _optional(value: float) -> float | None:
+    """NaN is the records' "missing" float; None is the decision's."""
+    return None if math.isnan(value) else value
 
 
 def frame_count(log: AnnotatedLog) -> int:
     """Frames the run used: from the frame times, else the last frame any sequence covers."""
     if log.frame_times is not None:
         return len(log.frame_times)
-    return max((int(s["last_index"]) for s in log.sequences), default=-1) + 1
+    return max((s.last_index for s in log.sequences), default=-1) + 1
 
 
 def recorded_threshold(log: AnnotatedLog) -> float:
     """The run's th: from the parameters in the metadata, else from the sequences."""
     threshold = log.parameters.get("threshold")
     if threshold is None and log.sequences:
-        threshold = log.sequences[0]["threshold"]
+        threshold = log.sequences[0].threshold
     if threshold is None:
         raise UsageError(f"{log.path}: the log records no detector threshold")
     return float(threshold)
@@ -70,8 +58,8 @@ def recorded_threshold(log: AnnotatedLog) -> float:
 
 def has_verification(log: AnnotatedLog) -> bool:
     """True when the run verified its pairs geometrically (even if none was a candidate)."""
-    return any(s.get("verification") == "on" for s in log.sequences) or any(
-        lc.get("verification") in (ACCEPTED, REJECTED, SKIPPED) for lc in log.loop_closures
+    return any(s.verification == "on" for s in log.sequences) or any(
+        lc.verification in (ACCEPTED, REJECTED, SKIPPED) for lc in log.loop_closures
     )
 
 
@@ -83,48 +71,41 @@ def _frame_time(frame_times: FrameTimes | None, index: int) -> int:
 
 
 def decision_from_sequence(
-    message: Mapping[str, Any],
+    message: SequenceRecord,
     candidates: Sequence[Candidate] | None = None,
     frame_times: FrameTimes | None = None,
 ) -> SequenceDecision:
     """The `SequenceDecision` a Sequence message records; `candidates` replaces its own."""
     if candidates is None:
         pairs = zip(
-            message["candidate_query_indices"],
-            message["candidate_match_indices"],
-            message["candidate_differences"],
+            message.candidate_query_indices,
+            message.candidate_match_indices,
+            message.candidate_differences,
             strict=True,
         )
         candidates = [
-            Candidate(
-                int(q),
-                int(m),
-                _frame_time(frame_times, int(q)),
-                _frame_time(frame_times, int(m)),
-                float(d),
-            )
+            Candidate(q, m, _frame_time(frame_times, q), _frame_time(frame_times, m), d)
             for q, m, d in pairs
         ]
-    has_candidate = bool(message["has_candidate"])
     return SequenceDecision(
-        sequence_id=int(message["sequence_id"]),
-        first_index=int(message["first_index"]),
-        last_index=int(message["last_index"]),
-        first_timestamp_ns=time_ns(message["first_timestamp"]),
-        last_timestamp_ns=time_ns(message["last_timestamp"]),
-        database_size=int(message["database_size"]),
-        best_start=int(message["best_start"]) if has_candidate else None,
-        best_velocity=_optional(message["best_velocity"]),
-        best_score=_optional(message["best_score"]),
-        second_score=_optional(message["second_score"]),
-        gamma=float(message["gamma"]),
-        gamma_previous=_optional(message["gamma_previous"]),
-        gamma_next=_optional(message["gamma_next"]),
-        f=float(message["f"]),
-        threshold=float(message["threshold"]),
-        accepted=bool(message["accepted"]),
+        sequence_id=message.sequence_id,
+        first_index=message.first_index,
+        last_index=message.last_index,
+        first_timestamp_ns=message.first_timestamp_ns,
+        last_timestamp_ns=message.last_timestamp_ns,
+        database_size=message.database_size,
+        best_start=message.best_start if message.has_candidate else None,
+        best_velocity=_optional(message.best_velocity),
+        best_score=_optional(message.best_score),
+        second_score=_optional(message.second_score),
+        gamma=message.gamma,
+        gamma_previous=_optional(message.gamma_previous),
+        gamma_next=_optional(message.gamma_next),
+        f=message.f,
+        threshold=message.threshold,
+        accepted=message.accepted,
         candidates=tuple(candidates),
-        method=str(message["method"]),
+        method=message.method,
     )
 
 
@@ -138,20 +119,20 @@ def verified_decisions(log: AnnotatedLog) -> list[SequenceDecision]:
     (at the refined match); sequences that were not verified keep no candidate."""
     accepted: dict[int, list[Candidate]] = defaultdict(list)
     for lc in log.loop_closures:
-        if lc.get("verification") == ACCEPTED:
-            query, match = int(lc["query_index"]), matched_index(lc)
-            accepted[int(lc["sequence_id"])].append(
+        if lc.verification == ACCEPTED:
+            match = lc.matched.index
+            accepted[lc.sequence_id].append(
                 Candidate(
-                    query,
+                    lc.query.index,
                     match,
-                    time_ns(lc["query_log_time"]),
+                    lc.query.log_time_ns,
                     _frame_time(log.frame_times, match),
-                    float(lc["difference"]),
+                    lc.difference,
                 )
             )
     decisions = []
     for message in log.sequences:
-        pairs = accepted.get(int(message["sequence_id"]), [])
+        pairs = accepted.get(message.sequence_id, [])
         decision = decision_from_sequence(message, pairs, log.frame_times)
         decisions.append(replace(decision, accepted=bool(pairs) and decision.accepted))
     return decisions
@@ -176,10 +157,11 @@ def evaluate_annotated_log(log: AnnotatedLog, gt: GroundTruth, tolerance: int = 
     """
     check_ground_truth_size(log, gt)
     threshold = recorded_threshold(log)
-    raw = evaluate(raw_decisions(log), gt, threshold, tolerance)
+    times = log.detector_times_ns()
+    raw = evaluate(raw_decisions(log), gt, threshold, tolerance, times)
     verified = None
     if has_verification(log):
-        verified = evaluate(verified_decisions(log), gt, threshold, tolerance)
+        verified = evaluate(verified_decisions(log), gt, threshold, tolerance, times)
     return LogEvaluation(raw, verified)
 
 

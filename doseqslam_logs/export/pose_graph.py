@@ -25,17 +25,18 @@ quaternion's vector part, about half the angle; there rotations weigh 4 times le
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..annotations.reader import AnnotatedLog
+from ..annotations.records import LoopClosureRecord
 from ..errors import SourceError
 from ..sources.poses import PoseTrack, read_poses
 from .base import ExportOptions
-from .loops import frame_times_ns, matched_index
+from .loops import frame_times_ns
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -121,7 +122,7 @@ def build_pose_graph(log: AnnotatedLog, options: ExportOptions) -> PoseGraph:
     loop_edges = [
         _loop_edge(lc, options)
         for lc in loops
-        if int(lc["query_index"]) in kept and matched_index(lc) in kept
+        if lc.query.index in kept and lc.matched.index in kept
     ]
     return PoseGraph(
         vertex_ids=ids,
@@ -134,7 +135,7 @@ def build_pose_graph(log: AnnotatedLog, options: ExportOptions) -> PoseGraph:
     )
 
 
-def _kept_frames(inside: npt.NDArray[np.bool_], loops: list[dict[str, Any]], stride: int) -> I64:
+def _kept_frames(inside: npt.NDArray[np.bool_], loops: list[LoopClosureRecord], stride: int) -> I64:
     """Every stride-th frame, the first and last frame with odometry, and every loop frame."""
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
@@ -143,7 +144,7 @@ def _kept_frames(inside: npt.NDArray[np.bool_], loops: list[dict[str, Any]], str
     wanted[indices[indices % stride == 0]] = True
     wanted[[indices[0], indices[-1]]] = True
     for lc in loops:
-        for index in (int(lc["query_index"]), matched_index(lc)):
+        for index in (lc.query.index, lc.matched.index):
             if 0 <= index < len(wanted):
                 wanted[index] = True
     return np.flatnonzero(wanted & inside).astype(np.int64)
@@ -221,11 +222,11 @@ def _odometry_edges(ids: I64, poses: PoseTrack) -> tuple[list[Edge], int]:
     return edges, defaults
 
 
-def verified_body_rotation(loop_closure: dict[str, Any]) -> F64 | None:
+def verified_body_rotation(loop_closure: LoopClosureRecord) -> F64 | None:
     """The match camera's orientation in the query camera's frame, in body axes, from the
     verification's R (X_match = R X_query + t, optical axes); None when not recorded."""
-    rotation = loop_closure.get("rotation_xyzw")
-    if not loop_closure.get("has_relative_pose", False) or rotation is None or len(rotation) != 4:
+    rotation = loop_closure.rotation_xyzw
+    if not loop_closure.has_relative_pose or len(rotation) != 4:
         return None
     values = np.asarray(rotation, np.float64)
     if not np.isfinite(values).all() or np.linalg.norm(values) < 1e-9:
@@ -235,7 +236,7 @@ def verified_body_rotation(loop_closure: dict[str, Any]) -> F64 | None:
     return _positive_w(np.asarray(Rotation.from_matrix(body).as_quat(), np.float64))
 
 
-def _loop_edge(loop_closure: dict[str, Any], options: ExportOptions) -> Edge:
+def _loop_edge(loop_closure: LoopClosureRecord, options: ExportOptions) -> Edge:
     quaternion = np.array([0.0, 0.0, 0.0, 1.0])
     if options.use_verified_rotation:
         verified = verified_body_rotation(loop_closure)
@@ -244,8 +245,8 @@ def _loop_edge(loop_closure: dict[str, Any], options: ExportOptions) -> Edge:
     sigmas = (options.loop_translation_sigma_m,) * 3 + (options.loop_rotation_sigma_rad,) * 3
     return Edge(
         "loop",
-        int(loop_closure["query_index"]),
-        matched_index(loop_closure),
+        loop_closure.query.index,
+        loop_closure.matched.index,
         np.zeros(3),
         quaternion,
         default_information(sigmas),

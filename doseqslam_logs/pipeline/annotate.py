@@ -11,11 +11,11 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from .. import __version__
-from ..annotations.records import FrameTimes
+from ..annotations.records import FrameTimes, RunMetadata
 from ..detector import Parameters, make_detector
 from ..errors import (
     DoseqslamError,
@@ -31,8 +31,7 @@ from ..sinks.mcap_writer import (
     refuse_same_file,
     write_annotated_mcap,
 )
-from ..sources import open_source, pick_image_topic
-from ..sources.base import MCAP_MAGIC
+from ..sources import is_mcap_file, open_source, pick_image_topic
 from ..sources.camera_info import read_camera_info
 from ..sources.frame import Frame
 from ..sources.salvage import SalvageReport, salvage_mcap
@@ -109,18 +108,21 @@ class Verification:
     stats: VerificationStats  # seconds summed over the verification threads
     wall_s: float = 0.0  # wall time of the whole stage
 
-    def metadata(self) -> dict[str, str]:
-        """Metadata entries: parameters and outcome, nothing that varies between runs."""
+    def recorded_in(self, metadata: RunMetadata) -> RunMetadata:
+        """The run's metadata with the stage's parameters and outcome; the run reports the
+        accepted pairs. Nothing that varies between runs."""
         k = self.intrinsics
-        return {
-            "verification": "on",
-            "verification_parameters": self.params.canonical_json(),
-            "verification_hash": self.params.hash,
-            "intrinsics": "" if k is None else json.dumps([k.fx, k.fy, k.cx, k.cy]),
-            "intrinsics_source": self.intrinsics_source,
-            "verified_pairs": str(self.stats.candidates),
-            "accepted_pairs": str(self.stats.accepted),
-        }
+        return replace(
+            metadata,
+            verification="on",
+            verification_parameters_json=self.params.canonical_json(),
+            verification_hash=self.params.hash,
+            intrinsics_json="" if k is None else json.dumps([k.fx, k.fy, k.cx, k.cy]),
+            intrinsics_source=self.intrinsics_source,
+            verified_pairs=self.stats.candidates,
+            accepted_pairs=self.stats.accepted,
+            loop_closures=self.stats.accepted,
+        )
 
 
 def verify_decisions(
@@ -203,43 +205,34 @@ def run_metadata(
     topic: str,
     options: AnnotateOptions,
     recovery: SalvageReport | None = None,
-) -> dict[str, str]:
-    """The `doseqslam` metadata record: strings only, nothing that varies between runs."""
-    return {
-        "tool": "doseqslam-logs",
-        "tool_version": __version__,
-        "method": params.method,
-        "parameters": params.canonical_json(),
-        "parameters_hash": params.hash,
-        "feature_detector": result.feature_detector,
-        "source_file": log.name,
-        "source_sha256": sha256,
-        "image_topic": topic,
-        "time_source": options.time_source,
-        "start_ns": "" if options.start_ns is None else str(options.start_ns),
-        "end_ns": "" if options.end_ns is None else str(options.end_ns),
-        "on_error": options.on_error,
-        "image_messages": str(counts.messages),
-        "frames_used": str(counts.used),
-        "frames_skipped": str(counts.skipped_total),
-        "frames_skipped_by_reason": json.dumps(counts.skipped_by_reason()),
-        "first_skipped_by_reason": json.dumps(dict(sorted(counts.first_skip.items()))),
-        "log_time_fallbacks": str(counts.log_time_fallbacks),
-        "clock_jumps": str(counts.clock_jumps),
-        "first_clock_jump": counts.first_clock_jump,
-        "recovered": "" if recovery is None else json.dumps(recovery.as_metadata()),
-        "verification": "off",
-        "sequences": str(len(result.decisions)),
-        "loop_closures": str(result.loop_closures),
-    }
-
-
-def _is_mcap(path: Path) -> bool:
-    try:
-        with path.open("rb") as file:
-            return file.read(len(MCAP_MAGIC)) == MCAP_MAGIC
-    except OSError:
-        return False  # open_source says what is wrong with it
+) -> RunMetadata:
+    """The `doseqslam` metadata record of a run without verification."""
+    return RunMetadata(
+        tool_version=__version__,
+        method=params.method,
+        parameters_json=params.canonical_json(),
+        parameters_hash=params.hash,
+        feature_detector=result.feature_detector,
+        source_file=log.name,
+        source_sha256=sha256,
+        image_topic=topic,
+        time_source=options.time_source,
+        start_ns=options.start_ns,
+        end_ns=options.end_ns,
+        on_error=options.on_error,
+        image_messages=counts.messages,
+        frames_used=counts.used,
+        frames_skipped=counts.skipped_total,
+        frames_skipped_by_reason_json=json.dumps(counts.skipped_by_reason()),
+        first_skipped_by_reason_json=json.dumps(dict(sorted(counts.first_skip.items()))),
+        log_time_fallbacks=counts.log_time_fallbacks,
+        clock_jumps=counts.clock_jumps,
+        first_clock_jump=counts.first_clock_jump,
+        recovered_json="" if recovery is None else json.dumps(recovery.as_metadata()),
+        verification="off",
+        sequences=len(result.decisions),
+        loop_closures=result.loop_closures,
+    )
 
 
 def annotate_log(
@@ -270,7 +263,7 @@ def annotate_log(
         params = command_detector_parameters(options.verification)
     if log.exists():  # before the detector runs, not after
         refuse_same_file(log, output)
-    if not (options.recover and _is_mcap(log)):
+    if not (options.recover and is_mcap_file(log)):
         return _annotate(log, log, output, params, options, progress, expected, None)
     with scratch_file(output) as repaired:
         try:
@@ -340,14 +333,13 @@ def _annotate(
     sha256 = digest.result()
     metadata = run_metadata(params, result, counts, log, sha256, topic, options, recovery)
     if verification is not None:
-        metadata.update(verification.metadata())
-        metadata["loop_closures"] = str(verification.stats.accepted)
+        metadata = verification.recorded_in(metadata)
     annotations = Annotations.from_decisions(
         result.decisions,
         frame_times,
         params.method,
         params.hash,
-        metadata,
+        metadata.to_entries(),
         None if verification is None else verification.decisions,
     )
     written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)

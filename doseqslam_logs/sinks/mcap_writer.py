@@ -40,10 +40,8 @@ from ..annotations.records import (
     FrameTimes,
     MessageType,
     TimedMessage,
-    Verifications,
-    loop_closure_messages,
-    sequence_messages,
 )
+from ..annotations.writer import Verifications, loop_closure_messages, sequence_messages
 from ..detector.events import SequenceDecision
 from ..errors import DoseqslamError, OutputError, SourceError
 from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC

@@ -16,6 +16,7 @@ from doseqslam_logs.sources.base import (
     ROS1_MAGIC,
     SQLITE_MAGIC,
     ChannelInfo,
+    DecodedMessage,
     ImageMessage,
     Source,
 )
@@ -26,10 +27,12 @@ from doseqslam_logs.sources.rosbags_source import RosbagsSource
 __all__ = [
     "FORMATS",
     "ChannelInfo",
+    "DecodedMessage",
     "ImageMessage",
     "Source",
     "decode_gray",
     "image_channels",
+    "is_mcap_file",
     "open_source",
     "pick_image_topic",
 ]
@@ -72,6 +75,16 @@ def _head(path: Path) -> bytes:
             return file.read(16)
     except OSError as exc:
         raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+
+
+def is_mcap_file(path: str | Path) -> bool:
+    """Whether `path` is a file that starts with the MCAP magic (False when unreadable:
+    `open_source` says what is wrong with it)."""
+    path = Path(path)
+    try:
+        return path.is_file() and _head(path).startswith(MCAP_MAGIC)
+    except SourceError:
+        return False
 
 
 def open_source(path: str | Path) -> Source:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 ImageKind = Literal["raw", "compressed"]
 
@@ -53,6 +53,16 @@ class ImageMessage:
     decode_error: str | None = None
 
 
+@dataclass(frozen=True)
+class DecodedMessage:
+    """One message of any topic, decoded with the log's own definition of its type (a ROS
+    message object, a protobuf message, or a namespace of a JSON object)."""
+
+    log_time_ns: int
+    message_type: str
+    message: Any
+
+
 class Source(Protocol):
     """A readable log. Sources are context managers; the input file is opened read-only."""
 
@@ -66,6 +76,11 @@ class Source(Protocol):
         self, topic: str, start_ns: int | None = None, end_ns: int | None = None
     ) -> Iterator[ImageMessage]:
         """The messages of one image topic in log-time order, within [start_ns, end_ns)."""
+        ...
+
+    def messages(self, topic: str) -> Iterator[DecodedMessage]:
+        """Every message of `topic` (poses, camera info: the other channels a run reads),
+        decoded. SourceError while iterating when the log or a message cannot be read."""
         ...
 
     def close(self) -> None: ...

@@ -13,12 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-
-from ..errors import SourceError
-from .base import MCAP_MAGIC
-from .mcap_source import DESERIALIZERS
+from . import open_source
 
 CAMERA_INFO_TYPES = (
     "sensor_msgs/msg/CameraInfo",
@@ -43,27 +38,23 @@ class CameraInfo:
 
 def read_camera_info(path: str | os.PathLike[str], image_topic: str) -> CameraInfo | None:
     """The first CameraInfo of the camera of `image_topic`, or None when the log has none
-    (or only ones without a focal length, e.g. an uncalibrated camera: K all zero).
+    (or only ones without a focal length, e.g. an uncalibrated camera: K all zero). The
+    camera's CameraInfo topic is the one sharing the longest prefix with the image topic.
 
     Raises SourceError when the log cannot be read.
     """
-    path = Path(path)
-    try:
-        if path.is_file() and _head(path) == MCAP_MAGIC:
-            found = _from_mcap(path, image_topic)
-        else:
-            found = _from_bag(path, image_topic)
-    except (OSError, McapError, ValueError, KeyError) as exc:
-        raise SourceError(f"{path}: cannot read the camera info ({exc})") from exc
-    if found is None:
-        return None
-    topic, message = found
-    return _camera_info(topic, message)
+    with open_source(Path(path)) as source:
+        topics = [c.topic for c in source.channels() if _is_camera_info(c.message_type)]
+        topic = _closest(topics, image_topic)
+        if topic is None:
+            return None
+        first = next(iter(source.messages(topic)), None)
+    return None if first is None else _camera_info(topic, first.message)
 
 
-def _head(path: Path) -> bytes:
-    with path.open("rb") as stream:
-        return stream.read(len(MCAP_MAGIC))
+def _is_camera_info(message_type: str) -> bool:
+    """A channel's type names (a topic may list several, comma-separated)."""
+    return any(name in CAMERA_INFO_TYPES for name in message_type.split(", "))
 
 
 def _closest(topics: list[str], image_topic: str) -> str | None:
@@ -78,43 +69,6 @@ def _closest(topics: list[str], image_topic: str) -> str | None:
         return common
 
     return max(sorted(topics), key=shared, default=None)
-
-
-def _from_mcap(path: Path, image_topic: str) -> tuple[str, Any] | None:
-    with path.open("rb") as stream:
-        reader = make_reader(stream)
-        summary = reader.get_summary()
-        if summary is None:
-            return None
-        channels = {
-            channel.topic: channel
-            for channel in summary.channels.values()
-            if (schema := summary.schemas.get(channel.schema_id)) is not None
-            and schema.name in CAMERA_INFO_TYPES
-        }
-        topic = _closest(list(channels), image_topic)
-        if topic is None:
-            return None
-        for schema, channel, message in reader.iter_messages(topics=[topic]):
-            if schema is None:
-                return None
-            make = DESERIALIZERS.get((channel.message_encoding, schema.encoding))
-            if make is None:
-                return None
-            return topic, make(schema)(message.data)
-    return None
-
-
-def _from_bag(path: Path, image_topic: str) -> tuple[str, Any] | None:
-    from rosbags.highlevel import AnyReader
-
-    with AnyReader([path]) as reader:
-        connections = [c for c in reader.connections if c.msgtype in CAMERA_INFO_TYPES]
-        topic = _closest([c.topic for c in connections], image_topic)
-        chosen = [c for c in connections if c.topic == topic]
-        for connection, _, raw in reader.messages(connections=chosen):
-            return topic or "", reader.deserialize(raw, connection.msgtype)
-    return None
 
 
 def _camera_info(topic: str, message: Any) -> CameraInfo | None:

@@ -36,6 +36,11 @@ def list_images(folder: Path) -> list[Path]:
     return images
 
 
+def folder_time_ns(index: int, fps: float) -> int:
+    """The stamp `folder_frames` gives frame `index`: index / fps seconds."""
+    return round(index * 1e9 / fps)
+
+
 def folder_frames(folder: Path, fps: float) -> Iterator[Frame]:
     """Frames of the folder's images, frame i stamped i / fps seconds.
 
@@ -47,5 +52,5 @@ def folder_frames(folder: Path, fps: float) -> Iterator[Frame]:
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise SourceError(f"{path}: cannot decode image")
-        stamp = round(index * 1e9 / fps)
+        stamp = folder_time_ns(index, fps)
         yield Frame(index, stamp, stamp, None, np.ascontiguousarray(image, dtype=np.uint8))

@@ -32,7 +32,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.summary import Summary
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
-from doseqslam_logs.sources.base import MCAP_MAGIC, ChannelInfo, ImageMessage
+from doseqslam_logs.sources.base import MCAP_MAGIC, ChannelInfo, DecodedMessage, ImageMessage
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 from doseqslam_logs.sources.mcap_index import indexed_topic_messages
 
@@ -338,6 +338,12 @@ class McapSource:
             )
 
     @property
+    def summary(self) -> Summary | None:
+        """The file's summary section as read when it was opened (None: cut short, damaged,
+        or written without one)."""
+        return self._summary
+
+    @property
     def indexed(self) -> bool:
         """Whether the file has chunk indexes, so that reading can seek."""
         return self._summary is not None and bool(self._summary.chunk_indexes)
@@ -407,6 +413,26 @@ class McapSource:
             raise SourceError(
                 f"{self.path}: cannot read the messages of {topic} ({describe_read_error(exc)}); "
                 f"{RECOVER_HINT}"
+            ) from exc
+
+    def messages(self, topic: str) -> Iterator[DecodedMessage]:
+        """Every message of `topic` in log-time order, decoded with the file's schema.
+
+        Raises SourceError (while iterating) for a damaged file or an unsupported encoding.
+        """
+        self._check_complete()
+        try:
+            with open(self.path, "rb") as file:
+                for schema, channel, message in self._records(file, topic, None, None):
+                    if schema is None:
+                        raise SourceError(f"{self.path}: topic {topic!r} has no schema")
+                    decoded = self._deserializer(schema, channel)(message.data)
+                    yield DecodedMessage(message.log_time, schema.name, decoded)
+        except DoseqslamError:
+            raise
+        except Exception as exc:
+            raise SourceError(
+                f"{self.path}: cannot read the messages of {topic} ({describe_read_error(exc)})"
             ) from exc
 
     def _records(

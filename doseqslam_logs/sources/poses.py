@@ -13,9 +13,6 @@ ascending and interpolation is well defined.
 
 from __future__ import annotations
 
-import contextlib
-import io
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,9 +20,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import DoseqslamError, SourceError
-from .base import MCAP_MAGIC
-from .mcap_source import DESERIALIZERS, McapSource, describe_read_error
+from ..errors import SourceError
+from . import open_source
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -134,22 +130,13 @@ def read_poses(path: str | Path, topic: str) -> PoseTrack:
     or a pose is not finite or has a zero quaternion.
     """
     path = Path(path)
-    if not path.exists():
-        raise SourceError(f"{path}: no such file or directory")
-    poses = list(_mcap_poses(path, topic) if _is_mcap(path) else _bag_poses(path, topic))
+    with open_source(path) as source:
+        types = [c.message_type for c in source.channels() if c.topic == topic]
+        kind = _check_type(path, topic, [n for t in types for n in t.split(", ")])
+        poses = [_pose(kind, m.message, m.log_time_ns) for m in source.messages(topic)]
     if not poses:
         raise SourceError(f"{path}: topic {topic!r} holds no messages")
     return _track(path, topic, poses)
-
-
-def _is_mcap(path: Path) -> bool:
-    if path.is_dir():
-        return False
-    try:
-        with path.open("rb") as file:
-            return file.read(len(MCAP_MAGIC)) == MCAP_MAGIC
-    except OSError as exc:
-        raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from exc
 
 
 def _check_type(path: Path, topic: str, type_names: list[str]) -> str:
@@ -163,59 +150,6 @@ def _check_type(path: Path, topic: str, type_names: list[str]) -> str:
             f"pose type ({', '.join(POSE_TYPES)})"
         )
     return kinds.pop()
-
-
-def _mcap_poses(path: Path, topic: str) -> Iterator[_Pose]:
-    with McapSource(path) as source:
-        channels = {c.topic: c for c in source.channels()}  # SourceError when damaged
-    channel_info = channels.get(topic)
-    kind = _check_type(path, topic, channel_info.message_type.split(", ") if channel_info else [])
-    from mcap.reader import make_reader
-
-    decoders: dict[int, Callable[[bytes], Any]] = {}
-    try:
-        with path.open("rb") as file:
-            for schema, channel, message in make_reader(file).iter_messages(topics=[topic]):
-                if schema is None:
-                    raise SourceError(f"{path}: topic {topic!r} has no schema")
-                if schema.id not in decoders:
-                    decoders[schema.id] = _mcap_decoder(path, topic, schema, channel)
-                yield _pose(kind, decoders[schema.id](message.data), message.log_time)
-    except DoseqslamError:
-        raise
-    except Exception as exc:
-        raise SourceError(
-            f"{path}: cannot read the messages of {topic} ({describe_read_error(exc)})"
-        ) from exc
-
-
-def _mcap_decoder(path: Path, topic: str, schema: Any, channel: Any) -> Callable[[bytes], Any]:
-    build = DESERIALIZERS.get((channel.message_encoding, schema.encoding))
-    if build is None:
-        raise SourceError(
-            f"{path}: topic {topic!r} uses encoding {channel.message_encoding}/{schema.encoding}, "
-            "which is not supported"
-        )
-    with contextlib.redirect_stderr(io.StringIO()):  # mcap_ros2 prints before raising
-        return build(schema)
-
-
-def _bag_poses(path: Path, topic: str) -> Iterator[_Pose]:
-    # The sources' opener gives the same one-line errors for every bag layout.
-    from .rosbags_source import _open_reader
-
-    reader = _open_reader(path)
-    try:
-        connections = [c for c in reader.connections if c.topic == topic]
-        kind = _check_type(path, topic, [c.msgtype for c in connections])
-        for connection, log_time, payload in reader.messages(connections=connections):
-            yield _pose(kind, reader.deserialize(payload, connection.msgtype), log_time)
-    except DoseqslamError:
-        raise
-    except Exception as exc:
-        raise SourceError(f"{path}: cannot read the messages of {topic} ({exc})") from exc
-    finally:
-        reader.close()
 
 
 # ---------------------------------------------------------------------------------------------

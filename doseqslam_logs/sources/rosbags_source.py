@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
-from doseqslam_logs.sources.base import ROS1_MAGIC, ChannelInfo, ImageMessage
+from doseqslam_logs.sources.base import ROS1_MAGIC, ChannelInfo, DecodedMessage, ImageMessage
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 
 if TYPE_CHECKING:
@@ -165,6 +165,25 @@ class RosbagsSource:
             raise SourceError(
                 f"{self.path}: cannot read the messages of {connections[0].topic} "
                 f"({_one_line(exc)})"
+            ) from exc
+
+    def messages(self, topic: str) -> Iterator[DecodedMessage]:
+        """Every message of `topic` in log-time order, decoded (none for a missing topic).
+
+        Raises SourceError (while iterating) when the bag turns out corrupt.
+        """
+        connections = [c for c in self._reader.connections if c.topic == topic]
+        if not connections:  # rosbags would yield every message of the bag
+            return
+        try:
+            for connection, log_time, payload in self._reader.messages(connections=connections):
+                decoded = self._reader.deserialize(payload, connection.msgtype)
+                yield DecodedMessage(log_time, connection.msgtype, decoded)
+        except DoseqslamError:
+            raise
+        except Exception as exc:
+            raise SourceError(
+                f"{self.path}: cannot read the messages of {topic} ({_one_line(exc)})"
             ) from exc
 
     def _deserializer(self, msgtype: str) -> Callable[[bytes], Any]:

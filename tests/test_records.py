@@ -1,0 +1,104 @@
+"""The typed records of our channels: what the writer builds reads back the same, and logs
+written by older versions (fewer fields) read with the documented "not recorded" values."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_sinks import PARAMETERS_HASH, make_decisions, make_frame_times
+
+from doseqslam_logs.annotations.reader import read_annotations
+from doseqslam_logs.annotations.records import (
+    NOT_RECORDED,
+    FrameRef,
+    LoopClosureRecord,
+    RunMetadata,
+    SequenceRecord,
+)
+from doseqslam_logs.annotations.writer import loop_closure_messages, sequence_messages
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.verification import DEFAULT_VERIFICATION
+
+# The fields of the first LoopClosure definition (0.1): everything later was appended.
+FIRST_LOOP_CLOSURE_FIELDS = 21
+FIRST_SEQUENCE_FIELDS = 24
+SAMPLE = Path(__file__).resolve().parent.parent / "sample_logs" / "drive_parked.ros2.mcap"
+
+
+def built() -> tuple[list[LoopClosureRecord], list[SequenceRecord]]:
+    times = make_frame_times(7 * 10**9)
+    closures = loop_closure_messages(make_decisions(), times, "doseqslam", PARAMETERS_HASH)
+    sequences = sequence_messages(make_decisions(), times, "doseqslam", PARAMETERS_HASH)
+    return (
+        [m.record for m in closures if isinstance(m.record, LoopClosureRecord)],
+        [m.record for m in sequences if isinstance(m.record, SequenceRecord)],
+    )
+
+
+def test_records_read_back_as_written() -> None:
+    closures, sequences = built()
+    assert closures and sequences
+    for lc in closures:  # repr: NaN (a missing float) is not equal to itself
+        assert repr(LoopClosureRecord.from_message(lc.to_message())) == repr(lc)
+    for s in sequences:
+        assert repr(SequenceRecord.from_message(s.to_message())) == repr(s)
+
+
+def test_a_loop_closure_of_an_older_version_reads_as_not_recorded() -> None:
+    closures, _ = built()
+    full = closures[0].to_message()
+    first = dict(list(full.items())[:FIRST_LOOP_CLOSURE_FIELDS])
+    assert list(first)[-1] == "parameters_hash"
+    old = LoopClosureRecord.from_message(first)
+    assert old.verification == NOT_RECORDED and old.reported
+    assert old.matched == old.match and old.proposal_match_index == old.match.index
+    assert not old.has_relative_pose and math.isnan(old.rotation_deg)
+    with pytest.raises(KeyError):
+        LoopClosureRecord.from_message({k: v for k, v in first.items() if k != "difference"})
+
+
+def test_a_sequence_of_an_older_version_reads_as_not_recorded() -> None:
+    _, sequences = built()
+    full = sequences[2].to_message()
+    first = dict(list(full.items())[:FIRST_SEQUENCE_FIELDS])
+    assert list(first)[-1] == "parameters_hash"
+    old = SequenceRecord.from_message(first)
+    assert old.verification == NOT_RECORDED and old.verified_pairs == 0
+    assert old.candidate_query_indices == sequences[2].candidate_query_indices
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    index=st.integers(0, 2**40),
+    log_time=st.integers(0, 2**63 - 1),
+    stamp=st.none() | st.integers(0, 2**63 - 1),
+)
+def test_frame_refs_round_trip(index: int, log_time: int, stamp: int | None) -> None:
+    frame = FrameRef(index, log_time, stamp)
+    assert FrameRef.from_message(frame.message_fields("x"), "x") == frame
+    assert frame.time_ns == (log_time if stamp is None else stamp)
+
+
+@pytest.mark.parametrize("verification", [None, DEFAULT_VERIFICATION])
+def test_run_metadata_reads_back_the_entries_it_wrote(tmp_path: Path, verification) -> None:
+    out = tmp_path / "out.mcap"
+    annotate_log(SAMPLE, out, options=AnnotateOptions(verification=verification))
+    meta = read_annotations(out).metadata
+    assert meta.to_entries() == meta.recorded  # the same keys, values and order
+    assert list(meta.to_entries()) == list(meta.recorded)
+    assert meta.verification == ("off" if verification is None else "on")
+    assert meta.image_topic == "/camera/image/compressed" and meta.frames_used > 0
+    assert (meta.verified_pairs > 0) == (verification is not None)
+
+
+def test_metadata_of_an_older_version_takes_defaults() -> None:
+    entries = {"tool_version": "0.1.0", "parameters": '{"threshold": 0.75}', "frames_used": "84"}
+    meta = RunMetadata.from_entries(entries)
+    assert meta.frames_used == 84 and meta.verification == "off" and meta.start_ns is None
+    assert meta.parameters == {"threshold": 0.75} and meta.recorded == entries
+    with pytest.raises(ValueError):
+        RunMetadata.from_entries({**entries, "frames_used": "many"})
