@@ -85,7 +85,7 @@ def test_a_parked_camera_is_cut_by_the_length_cap_and_memory_stays_bounded() -> 
     decisions = []
     for i in range(23):
         decisions += detector.push(i * SECOND, frame)
-        held.append(len(detector._sequences))
+        held.append(detector.held_sequences)
     decisions += detector.finish()
     assert [d.length for d in decisions] == [5, 5, 5, 5, 3]
     assert max(held) <= 4

@@ -1,8 +1,9 @@
-"""The shown outputs are real: the README's quick start and the `evaluate --images`,
+"""The shown outputs are real: the README's quick start and the `annotate`, `evaluate --images`,
 `evaluate OUT.mcap`, `diff` and `export` blocks of docs/cli.md are parsed, their commands run
 (on the shared RTAB-Map samples, on a fresh annotation of the sample), and the printed lines
 compared with the shown ones, with only machine-dependent fields (timings) masked. The `batch`
-block is left out (too slow). The README's links into docs/cli.md lead to real headings."""
+block is left out (too slow). The README's links into docs/cli.md lead to real headings.
+After a change of behaviour, DOSEQSLAM_REFRESH_DOCS=1 writes the new outputs in (REFRESH)."""
 
 from __future__ import annotations
 
@@ -189,10 +190,52 @@ def shell(tmp_path_factory: pytest.TempPathFactory) -> Shell:
     return shell
 
 
+# DOSEQSLAM_REFRESH_DOCS=1 pytest tests/test_readme.py writes the outputs the commands print
+# into the documents instead of comparing them (then review the diff: it is the behaviour).
+REFRESH = os.environ.get("DOSEQSLAM_REFRESH_DOCS") == "1"
+
+
+def refreshed_block(raw: str, indent: int, outputs: list[str]) -> str:
+    """A ```text block's body with each command's shown output replaced by `outputs`."""
+    lines: list[str] = []
+    remaining, continued = iter(outputs), False
+    for line in raw.splitlines():
+        body = line[indent:]
+        if not (continued or body.startswith("$ ")):
+            continue  # an output line shown before: replaced below
+        lines.append(line)
+        continued = body.endswith("\\")
+        if not continued:
+            lines += [" " * indent + out for out in next(remaining).splitlines()]
+    return "".join(f"{line}\n" for line in lines)
+
+
+def refresh(document: Path, text: str, shell: Shell) -> None:
+    """Run every block of `text` (a part of `document`) and write what it prints into it."""
+    content = document.read_text(encoding="utf-8")
+    for match in re.finditer(r"^( *)```text\n(.*?)^\1```$", text, flags=re.MULTILINE | re.DOTALL):
+        commands = blocks(match.group(0) + "\n")[0]
+        outputs = [shell.run(command.line) for command in commands]
+        for index, command in enumerate(commands):  # set-up steps stay without their summary
+            if command.line.startswith("doseqslam-logs annotate") and not command.expected:
+                outputs[index] = ""
+        raw = match.group(2)
+        content = content.replace(raw, refreshed_block(raw, len(match.group(1)), outputs), 1)
+    document.write_text(content, encoding="utf-8")
+
+
 def check_section(
-    shell: Shell, heading: str, expected_blocks: int, text: str | None = None
+    shell: Shell,
+    heading: str,
+    expected_blocks: int,
+    text: str | None = None,
+    document: Path = REFERENCE,
 ) -> None:
-    found = blocks(section(heading) if text is None else text)
+    text = section(heading, document) if text is None else text
+    if REFRESH:
+        refresh(document, text, shell)
+        text = section(heading, document, "##" if document == README else "###")
+    found = blocks(text)
     assert len(found) == expected_blocks, f"{heading}: {len(found)} text blocks"
     for commands in found:
         for index, command in enumerate(commands):
@@ -210,7 +253,7 @@ def check_section(
 
 
 def test_quick_start_blocks(shell: Shell) -> None:
-    check_section(shell, "Quick start", 2, section("Quick start", README, level="##"))
+    check_section(shell, "Quick start", 2, section("Quick start", README, level="##"), README)
 
 
 def test_readme_links_into_the_reference_reach_its_headings() -> None:
@@ -222,6 +265,10 @@ def test_readme_links_into_the_reference_reach_its_headings() -> None:
 
 def test_readme_stays_a_front_door() -> None:
     assert len(README.read_bytes()) <= 8 * 1024
+
+
+def test_annotate_block(shell: Shell) -> None:
+    check_section(shell, "`annotate LOG -o OUT.mcap`", 1)
 
 
 def test_evaluate_images_block(shell: Shell, shared_data: Path) -> None:

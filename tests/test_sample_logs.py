@@ -81,7 +81,7 @@ def test_a_parked_camera_keeps_sequences_and_memory_bounded() -> None:
             SAMPLES / "drive_parked.ros2.mcap", Parameters(max_sequence_length=cap)
         )
         assert max(d.length for d in result.decisions) <= cap
-        assert len(detector._sequences) <= 3  # only the undecided tail is held
+        assert detector.held_sequences <= 3  # only the undecided tail is held
         assert detector.memory_bytes <= 4096 * 2048 + 8 * result.frames  # one vector block
         parked = [d for d in result.decisions if d.first_index <= last and d.last_index >= first]
         assert len(parked) >= min_pieces  # the small cap cuts the parked minute

@@ -82,6 +82,17 @@ class FrameStore:
             views.append(block[: min(self.block_frames, count - start)])
         return views
 
+    def span(self, first: int, stop: int) -> list[npt.NDArray[np.generic]]:
+        """Views of stored vectors first .. stop-1, block by block (no copy)."""
+        views = []
+        index = first
+        while index < stop:
+            block, offset = divmod(index, self.block_frames)
+            take = min(self.block_frames - offset, stop - index)
+            views.append(self._blocks[block][offset : offset + take])
+            index += take
+        return views
+
     @property
     def nbytes(self) -> int:
         return sum(b.nbytes for b in self._blocks)
@@ -98,11 +109,34 @@ def sad_rows(queries: npt.NDArray[np.generic], store: FrameStore, database_size:
     return _sad_rows_float32(queries, store, database_size)
 
 
+def sad_columns(
+    queries: npt.NDArray[np.generic], store: FrameStore, first: int, stop: int
+) -> FloatArray:
+    """`sad_rows` restricted to the database columns first .. stop-1: D[q, j - first].
+
+    The same kernels on the same values, so each cell equals the full row's (the place
+    search computes only windows around proposed places).
+    """
+    blocks = store.span(first, stop)
+    if store.precision == "uint8":
+        sums = sad_sums_uint8(np.ascontiguousarray(queries, dtype=np.uint8), blocks)
+        scale = 1.0 / (QUANTIZATION_SCALE * store.dimension)
+        return (sums * scale).astype(np.float32)
+    return _sad_float32(queries, blocks, store.dimension)
+
+
 def _sad_rows_float32(queries: npt.NDArray[np.generic], store: FrameStore, n: int) -> FloatArray:
+    return _sad_float32(queries, store.blocks(n), store.dimension)
+
+
+def _sad_float32(
+    queries: npt.NDArray[np.generic], blocks: list[npt.NDArray[np.generic]], dimension: int
+) -> FloatArray:
+    n = sum(len(block) for block in blocks)
     out = np.empty((len(queries), n), np.float32)
-    scale = np.float32(1.0 / store.dimension)
+    scale = np.float32(1.0 / dimension)
     start = 0
-    for block in store.blocks(n):
+    for block in blocks:
         stop = start + len(block)
         for row, query in enumerate(queries):
             out[row, start:stop] = np.abs(block - query).sum(axis=1, dtype=np.float32) * scale

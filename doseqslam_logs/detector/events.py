@@ -45,7 +45,9 @@ class SequenceDecision:
     best_start: int | None  # j*: database frame where the best trajectory starts
     best_velocity: float | None
     best_score: float | None  # S_do[j*]
-    second_score: float | None  # lowest score outside the exclusion window
+    # Full search: the lowest score outside the exclusion window. Indexed place search: the
+    # median of the windows' non-matching scores (detector/place_search.py), gamma's reference.
+    second_score: float | None
     gamma: float  # best / second (1.0 when there is no candidate)
     gamma_previous: float | None
     gamma_next: float | None

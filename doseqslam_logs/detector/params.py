@@ -22,13 +22,21 @@ Method = Literal["doseqslam", "seqslam"]
 Association = Literal["greedy", "trajectory"]
 FeatureDetector = Literal["auto", "surf", "orb", "sift", "akaze", "brisk", "klt"]
 Precision = Literal["uint8", "float32"]
+PlaceSearch = Literal["full", "index"]
 
 _CHOICES: dict[str, tuple[str, ...]] = {
     "method": get_args(Method),
     "association": get_args(Association),
     "feature_detector": get_args(FeatureDetector),
     "difference_precision": get_args(Precision),
+    "place_search": get_args(PlaceSearch),
 }
+
+# Fields added after outputs recorded parameter hashes: `to_dict` leaves each out while it holds
+# its default, so every earlier parameter set keeps its dict, TOML, canonical JSON and hash
+# byte for byte (they are written into output files), and `from_dict` accepts them either way.
+# A field added from now on belongs here with its default.
+LATER_FIELDS = ("place_search", "place_count", "place_queries", "place_margin")
 
 
 @dataclass(frozen=True)
@@ -73,6 +81,16 @@ class Parameters:
     alternative_separation: int = 10
     # SeqSLAM baseline: fixed sequence length ds.
     seqslam_length: int = 10
+    # Where a sequence is searched: "full" is the paper (every older frame, gamma = best /
+    # second best); "index" asks a bag-of-words place index (detector/place_search.py) for
+    # `place_count` places, voted by `place_queries` frames of the sequence, and scores
+    # trajectories only in windows of +-`place_margin` frames around them, with gamma = best /
+    # median of the windows' non-matching scores (repeated visits do not count against it).
+    # DOSeqSLAM only. Left out of `to_dict` at their defaults (LATER_FIELDS).
+    place_search: PlaceSearch = "full"
+    place_count: int = 4
+    place_queries: int = 5
+    place_margin: int = 10
 
     def __post_init__(self) -> None:
         for name, allowed in _CHOICES.items():
@@ -87,6 +105,8 @@ class Parameters:
             "max_features",
             "feature_image_max_side",
             "seqslam_length",
+            "place_count",
+            "place_queries",
         )
         for name in positive:
             if getattr(self, name) <= 0:
@@ -105,6 +125,8 @@ class Parameters:
             raise ParameterError("min_features and max_sequence_length must be >= 0")
         if self.alternatives < 0 or self.alternative_separation < 1:
             raise ParameterError("alternatives must be >= 0 and alternative_separation >= 1")
+        if self.place_margin < 0:
+            raise ParameterError("place_margin must be >= 0")
 
     @property
     def velocities(self) -> tuple[float, ...]:
@@ -115,7 +137,13 @@ class Parameters:
         return tuple(sorted(v for v in grid if v <= self.velocity_max + 1e-9))
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Every field, except the LATER_FIELDS that hold their default (the hash rule)."""
+        values = dataclasses.asdict(self)
+        defaults = {f.name: f.default for f in fields(self)}
+        for name in LATER_FIELDS:
+            if values[name] == defaults[name]:
+                del values[name]
+        return values
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> Parameters:

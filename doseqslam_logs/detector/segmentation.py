@@ -61,7 +61,7 @@ def shrink(gray: GrayImage, max_side: int) -> GrayImage:
     return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
 
 
-def _create(name: str, max_features: int) -> tuple[Any, int]:
+def create_detector(name: str, max_features: int) -> tuple[Any, int]:
     """An OpenCV feature object and the norm its descriptors are compared with.
 
     Raises ValueError when the installed OpenCV lacks it (SURF is absent from PyPI builds).
@@ -96,7 +96,7 @@ def resolve_detector_name(requested: str) -> str:
         return requested
     for name in AUTO_ORDER:
         try:
-            _create(name, 10)
+            create_detector(name, 10)
         except ValueError:
             continue
         return name
@@ -117,7 +117,7 @@ class DescriptorSegmenter:
 
     def __init__(self, params: Parameters, name: str) -> None:
         self.name = name
-        _, norm = _create(name, params.max_features)  # fails early if the build lacks it
+        _, norm = create_detector(name, params.max_features)  # fails early if the build lacks it
         self._local = threading.local()  # OpenCV feature objects are not shared across threads
         self._matcher = cv2.BFMatcher(norm)
         self._max_features = params.max_features
@@ -131,7 +131,7 @@ class DescriptorSegmenter:
         """This frame's descriptors (strongest `max_features`), on the shrunk frame."""
         detector = getattr(self._local, "detector", None)
         if detector is None:
-            detector = self._local.detector = _create(self.name, self._max_features)[0]
+            detector = self._local.detector = create_detector(self.name, self._max_features)[0]
         keypoints, descriptors = detector.detectAndCompute(shrink(gray, self._max_side), None)
         if descriptors is None or len(keypoints) == 0:
             return _Features(None)

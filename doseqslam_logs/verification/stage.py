@@ -42,12 +42,15 @@ detector, so a trajectory that is wrong at two queries stays wrong. On the first
 of the 10 Hz hour, giving up checked 39 % fewer pairs and accepted the same 368 pairs; the
 2s grid then checked 30 % fewer again, with the same 318 true pairs among 367 accepted
 (docs/performance.md). At s = 1 every candidate gets the exhaustive window, exactly as before.
-Next-best trajectories are tried at s = 1 only: at high frame rates they would multiply the
-stage's cost, which the rules above keep bounded.
+At s > 1 the next-best trajectories are proposals of their own, each checked by the rules above
+(tracked, coarse to fine, given up after two hopeless checks): a revisit whose true visit is an
+alternative (the indexed place search proposes the other visits of a place so) is found there,
+at a cost of at most two hopeless checks per wrong alternative and sequence (`_strided`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections import OrderedDict
@@ -232,36 +235,83 @@ class Verifier:
             for candidate in decision.candidates:
                 needed.update(self._window(candidate.match_index, decision.database_size))
             features = self._features(sorted(needed))
-        checks: list[PairCheck] = []
-        previous: PairCheck | None = None  # the last check of this sequence (stride > 1)
-        hopeless_run = 0  # hopeless checks in a row (stride > 1)
-        alternative_runs = [0] * len(decision.alternatives)  # the same, per alternative
-        for z, candidate in enumerate(decision.candidates):
-            if z % stride:
-                checks.append(PairCheck(candidate, candidate.match_index, self._skipped()))
-                continue
-            if hopeless_run >= GIVE_UP_AFTER:
-                given_up = self._skipped(GIVEN_UP_REASON)
-                checks.append(PairCheck(candidate, candidate.match_index, given_up))
-                continue
-            seen: dict[int, Verdict] = {}  # window frame -> verdict of this query
-            previous = self._check(
-                candidate, decision.database_size, stride, previous, features, seen
-            )
-            if stride == 1 and not previous.accepted:  # the query's features: read above
-                query = features[candidate.query_index]
-                previous = self._try_alternatives(
-                    decision, z, previous, query, seen, alternative_runs
-                )
-            checks.append(previous)
-            hopeless = stride > 1 and self._hopeless(previous.verdict)
-            hopeless_run = hopeless_run + 1 if hopeless else 0
+        if stride == 1:
+            checks = self._exhaustive(decision, features)
+        else:
+            checks = self._strided(decision, stride)
         self.stats.candidates += len(checks)
         self.stats.accepted += sum(check.accepted for check in checks)
         self.stats.from_alternatives += sum(c.accepted and c.proposal > 0 for c in checks)
         self.stats.skipped += sum(check.skipped for check in checks)
         self.stats.given_up += sum(check.verdict.reason == GIVEN_UP_REASON for check in checks)
         return VerifiedDecision(decision, tuple(checks))
+
+    def _exhaustive(
+        self, decision: SequenceDecision, features: dict[int, FrameFeatures]
+    ) -> list[PairCheck]:
+        """Stride 1: every candidate's whole window, then the alternatives' when it fails."""
+        checks: list[PairCheck] = []
+        alternative_runs = [0] * len(decision.alternatives)  # hopeless in a row, per one
+        for z, candidate in enumerate(decision.candidates):
+            seen: dict[int, Verdict] = {}  # window frame -> verdict of this query
+            check = self._check(candidate, decision.database_size, 1, None, features, seen)
+            if not check.accepted:  # the query's features: read by `verify`
+                query = features[candidate.query_index]
+                check = self._try_alternatives(decision, z, check, query, seen, alternative_runs)
+            checks.append(check)
+        return checks
+
+    def _strided(self, decision: SequenceDecision, stride: int) -> list[PairCheck]:
+        """Stride s > 1: every s-th candidate, coarse to fine, on each proposal in turn.
+
+        Proposal 0 is the detector's trajectory, k > 0 the k-th alternative. Each proposal is
+        tracked on its own (the offset of its last check) and given up after GIVE_UP_AFTER
+        hopeless checks in a row; the proposal accepted last is tried first, so a sequence
+        whose revisit lies on an alternative checks that one alone while it keeps passing.
+        The sequence is given up once every proposal is. A candidate costs at most one
+        coarse-to-fine search per proposal, and each wrong proposal two hopeless ones per
+        sequence: bounded by (1 + alternatives) x the cost without alternatives.
+        """
+        proposals = 1 + len(decision.alternatives)
+        runs = [0] * proposals  # hopeless checks in a row, per proposal
+        last: list[PairCheck | None] = [None] * proposals  # each one's last check
+        first = 0  # the proposal tried first: the last accepted
+        checks: list[PairCheck] = []
+        for z, candidate in enumerate(decision.candidates):
+            if z % stride:
+                checks.append(PairCheck(candidate, candidate.match_index, self._skipped()))
+                continue
+            order = [first, *(k for k in range(proposals) if k != first)]
+            live = [k for k in order if runs[k] < GIVE_UP_AFTER]
+            if not live:
+                given_up = self._skipped(GIVEN_UP_REASON)
+                checks.append(PairCheck(candidate, candidate.match_index, given_up))
+                continue
+            seen: dict[int, Verdict] = {}  # window frame -> verdict of this query
+            kept: PairCheck | None = None
+            for k in live:
+                proposed = self._proposed(decision, z, k)
+                check = self._check(proposed, decision.database_size, stride, last[k], {}, seen)
+                last[k] = check
+                runs[k] = runs[k] + 1 if self._hopeless(check.verdict) else 0
+                result = PairCheck(candidate, check.refined_match_index, check.verdict, k)
+                if kept is None or check.accepted or k == 0:  # rejected: the own check
+                    kept = result
+                if check.accepted:
+                    first = k
+                    break
+            assert kept is not None
+            checks.append(kept)
+        return checks
+
+    @staticmethod
+    def _proposed(decision: SequenceDecision, z: int, proposal: int) -> Candidate:
+        """Candidate z at the match that proposal gives it (0: the detector's own)."""
+        candidate = decision.candidates[z]
+        if proposal == 0:
+            return candidate
+        match = decision.alternatives[proposal - 1].match_indices[z]
+        return dataclasses.replace(candidate, match_index=match)
 
     def _skipped(self, reason: str = SKIPPED_REASON) -> Verdict:
         return Verdict(False, 0, 0, "F" if self.intrinsics is None else "E", reason)
@@ -286,7 +336,7 @@ class Verifier:
 
         def best(frames: Iterable[int]) -> tuple[int, Verdict]:
             self._check_frames(query, [m for m in frames if m in window], seen)
-            return best_verdict(list(seen.items()), match)
+            return best_verdict([(m, v) for m, v in seen.items() if m in window], match)
 
         if stride == 1:
             return PairCheck(candidate, *self._bracketed(window, seen, *best(window)))
