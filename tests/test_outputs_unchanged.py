@@ -19,6 +19,8 @@ import compare_versions  # noqa: E402
 # forward only with a change that alters those outputs on purpose, and say so in that commit.
 # The paper's detector (--no-verify): unchanged since before the package layout of issue #18.
 PAPER_REFERENCE = "4c02724"
+# The command's defaults (verification on): since the indexed place search of issue #17.
+DEFAULT_REFERENCE = "9b79981"
 REFERENCE = PAPER_REFERENCE  # the oldest one: the history the test needs
 
 
@@ -35,4 +37,12 @@ def test_the_papers_detector_annotates_the_samples_to_the_same_bytes(tmp_path) -
     """Issue #17: the paper stays one flag away, bit for bit."""
     logs = [REPO / "sample_logs" / name for name in compare_versions.SAMPLES]
     results = compare_versions.compare(PAPER_REFERENCE, logs, ["--no-verify"], tmp_path)
+    assert results == [(log.name, True) for log in logs]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not _has_reference(), reason=f"no git history with {REFERENCE} here")
+def test_the_commands_defaults_annotate_the_samples_to_the_same_bytes(tmp_path) -> None:
+    logs = [REPO / "sample_logs" / name for name in compare_versions.SAMPLES]
+    results = compare_versions.compare(DEFAULT_REFERENCE, logs, [], tmp_path)
     assert results == [(log.name, True) for log in logs]
