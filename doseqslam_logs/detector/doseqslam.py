@@ -150,10 +150,10 @@ class DOSeqSLAM:
         with self.timings.stage("features"):
             features = self._segmenter.prepare(gray)
             places = None
-            if self._places is not None:
-                places = binary_descriptors(features) if self._segmenter.name == "orb" else None
-                if places is None and self._segmenter.name != "orb":
-                    places = orb_descriptors(gray, p.max_features, p.feature_image_max_side)
+            if self._places is not None and self._segmenter.name == "orb":  # reuse them
+                places = binary_descriptors(features)
+            elif self._places is not None:
+                places = orb_descriptors(gray, p.max_features, p.feature_image_max_side)
         return PreparedFrame(vector, features, places)
 
     def push(self, timestamp_ns: int, gray: GrayImage) -> list[SequenceDecision]:
@@ -238,7 +238,8 @@ class DOSeqSLAM:
         if database == 0:
             return QueryResult(database_size=0, gamma=1.0)
         if self._places is not None:
-            return self._query_places(seq, database, Exclusion(2 * before, 2 * after))
+            exclusion = Exclusion(WINDOW_LENGTHS * before, WINDOW_LENGTHS * after)
+            return self._query_places(seq, database, exclusion)
         with self.timings.stage("sad"):
             rows = sad_rows(self._store.rows(seq.first, seq.last), self._store, database)
         with self.timings.stage("enhance"):

@@ -139,17 +139,20 @@ class _Sweep:
     ranks: IntArray
     true: npt.NDArray[np.bool_]
 
+    def entered(self, threshold: float) -> int:
+        """Decisions reported at `threshold`: every one with f < threshold (a prefix)."""
+        return int(np.searchsorted(self.f, threshold, side="left"))
+
     def counts_at(self, threshold: float) -> tuple[int, int, int]:
-        """(decisions, TP, FP) reported at `threshold`: every decision with f < threshold."""
-        entered = int(np.searchsorted(self.f, threshold, side="left"))
+        """(decisions, TP, FP) reported at `threshold`."""
+        entered = self.entered(threshold)
         if entered == 0:
             return 0, 0, 0
         return entered, int(self.cum_tp[entered - 1]), int(self.cum_fp[entered - 1])
 
     def true_queries_at(self, threshold: float) -> IntArray:
         """The query frames of the true pairs reported at `threshold`."""
-        entered = int(np.searchsorted(self.f, threshold, side="left"))
-        return self.queries[self.true & (self.ranks < entered)]
+        return self.queries[self.true & (self.ranks < self.entered(threshold))]
 
 
 def evaluate(
