@@ -26,7 +26,6 @@ from doseqslam_logs.evaluation.groundtruth import GroundTruth, load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
 from doseqslam_logs.evaluation.pose_ground_truth import (
     LoopCriteria,
-    frame_pose_times,
     frame_poses,
     loop_cells,
     pose_ground_truth,
@@ -235,7 +234,7 @@ def test_pose_ground_truth_of_the_log_is_the_committed_one(annotated, capsys) ->
     out, _ = annotated
     log = read_annotations(out)
     assert log.frame_times is not None
-    times = frame_pose_times(log.frame_times, log.metadata.time_source)
+    times = log.frame_times.detector_times_ns(log.metadata.time_source)
     poses = frame_poses(read_poses(out, POSES), times)
     committed = load_ground_truth(GT)
     for travel in (20.0, None):  # the travel condition never binds on drive_loops
@@ -263,7 +262,7 @@ def test_min_travel_keeps_a_parked_camera_from_revisiting_itself() -> None:
             for m in source.image_messages("/camera/image/compressed")
         ]
     poses = frame_poses(
-        read_poses(log, POSES), frame_pose_times(FrameTimes.from_pairs(pairs), "header")
+        read_poses(log, POSES), FrameTimes.from_pairs(pairs).detector_times_ns("header")
     )
     committed = load_ground_truth(SAMPLES / "drive_parked.gt.npz")
     strict = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, 20.0))
@@ -424,10 +423,10 @@ def test_yaw_from_quaternions_inverts_a_rotation_about_z(yaw, scale) -> None:
     assert yaw_from_quaternions(quaternion)[0] == pytest.approx(yaw, abs=1e-9)
 
 
-def test_frame_pose_times_follow_the_runs_clock() -> None:
+def test_frame_times_follow_the_runs_clock() -> None:
     frame_times = FrameTimes([100, 200, 300, 400], [150, -1, 0, 450])
-    assert frame_pose_times(frame_times, "header").tolist() == [150, 200, 300, 450]
-    assert frame_pose_times(frame_times, "log").tolist() == [100, 200, 300, 400]
+    assert frame_times.detector_times_ns("header").tolist() == [150, 200, 300, 450]
+    assert frame_times.detector_times_ns("log").tolist() == [100, 200, 300, 400]
 
 
 def test_criteria_are_checked() -> None:

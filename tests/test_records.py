@@ -15,6 +15,7 @@ from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.annotations.records import (
     NOT_RECORDED,
     FrameRef,
+    FrameTimes,
     LoopClosureRecord,
     RunMetadata,
     SequenceRecord,
@@ -75,12 +76,16 @@ def test_a_sequence_of_an_older_version_reads_as_not_recorded() -> None:
 @given(
     index=st.integers(0, 2**40),
     log_time=st.integers(0, 2**63 - 1),
-    stamp=st.none() | st.integers(0, 2**63 - 1),
+    stamp=st.none() | st.just(0) | st.integers(0, 2**63 - 1),
 )
 def test_frame_refs_round_trip(index: int, log_time: int, stamp: int | None) -> None:
     frame = FrameRef(index, log_time, stamp)
     assert FrameRef.from_message(frame.message_fields("x"), "x") == frame
-    assert frame.time_ns == (log_time if stamp is None else stamp)
+    # The detector's rule (pipeline.decode.frame_time): no stamp, or a stamp of 0, is log time.
+    assert frame.time_ns == (stamp if stamp else log_time)
+    times = FrameTimes.from_pairs([(log_time, stamp)])
+    assert times.detector_times_ns("header").tolist() == [frame.time_ns]
+    assert times.detector_times_ns("log").tolist() == [log_time]
 
 
 @pytest.mark.parametrize("verification", [None, DEFAULT_VERIFICATION])

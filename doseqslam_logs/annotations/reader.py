@@ -62,15 +62,12 @@ class AnnotatedLog:
         return self.metadata.parameters
 
     def detector_times_ns(self) -> npt.NDArray[np.int64] | None:
-        """The time the detector gave every frame, by index: the header stamp (log time for
-        a frame without one), or the log time with `--time-source log`. None for logs
-        annotated before frame times were recorded."""
+        """The time the detector gave every frame, by index (`FrameTimes.detector_times_ns`
+        with the run's time source). None for logs annotated before frame times were
+        recorded."""
         if self.frame_times is None:
             return None
-        stamps, log_times = self.frame_times.header_stamps_ns, self.frame_times.log_times_ns
-        if self.metadata.time_source == "log":
-            return np.array(log_times, dtype=np.int64)
-        return np.where(stamps >= 0, stamps, log_times).astype(np.int64)
+        return self.frame_times.detector_times_ns(self.metadata.time_source)
 
 
 def plain(value: Any) -> Any:

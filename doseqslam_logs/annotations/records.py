@@ -125,6 +125,16 @@ class FrameTimes:
         except (TypeError, KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"not a frame-times document ({exc})") from exc
 
+    def detector_times_ns(self, time_source: str) -> npt.NDArray[np.int64]:
+        """The time the detector gave each frame (pipeline.decode.frame_time): the header
+        stamp, or the log time for a frame without one or stamped 0, or with `time_source`
+        "log"."""
+        stamps = self.header_stamps_ns
+        if time_source == "log":
+            stamps = np.full_like(stamps, NO_STAMP)
+        times: npt.NDArray[np.int64] = np.where(stamps > 0, stamps, self.log_times_ns)
+        return times.astype(np.int64)
+
     def log_time(self, index: int) -> int:
         """Raises ValueError for an index outside the frames."""
         return int(self.log_times_ns[self._check(index)])
@@ -176,8 +186,9 @@ class FrameRef:
 
     @property
     def time_ns(self) -> int:
-        """The time the detector used: the header stamp when there is one, else the log time."""
-        return self.log_time_ns if self.stamp_ns is None else self.stamp_ns
+        """The time the detector used with header time: the header stamp, or the log time
+        when there is none or it is 0 (as `FrameTimes.detector_times_ns`)."""
+        return self.stamp_ns if self.stamp_ns else self.log_time_ns
 
     @classmethod
     def of(cls, index: int, frame_times: FrameTimes) -> FrameRef:

@@ -27,7 +27,6 @@ from .groundtruth import GroundTruth, load_ground_truth
 from .pose_ground_truth import (
     FramePoses,
     LoopCriteria,
-    frame_pose_times,
     frame_poses,
     pose_ground_truth,
 )
@@ -174,7 +173,7 @@ class _Inputs:
                 f"{self.log.path}: annotated by an older version without frame times; "
                 "annotate the log again to use its poses"
             )
-        times = frame_pose_times(self.log.frame_times, self.log.metadata.time_source)
+        times = self.log.frame_times.detector_times_ns(self.log.metadata.time_source)
         return frame_poses(self.track(topic), times)
 
 

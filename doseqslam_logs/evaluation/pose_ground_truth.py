@@ -23,7 +23,6 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from ..annotations.records import NO_STAMP, FrameTimes
 from ..errors import UsageError
 from ..sources.poses import PoseTrack
 from .groundtruth import GroundTruth
@@ -74,15 +73,6 @@ class FramePoses:
     positions: FloatArray  # N x 3
     yaw: FloatArray  # N, radians
     has_pose: BoolArray  # N: inside the pose track's time span
-
-
-def frame_pose_times(frame_times: FrameTimes, time_source: str) -> IntArray:
-    """The time to look each frame's pose up at: the image header stamp when the run used
-    header time and the image has a non-zero one (as the detector did), else the log time."""
-    stamps = frame_times.header_stamps_ns
-    use_header = (stamps != NO_STAMP) & (stamps != 0) if time_source == "header" else False
-    times: IntArray = np.where(use_header, stamps, frame_times.log_times_ns).astype(np.int64)
-    return times
 
 
 def yaw_from_quaternions(quaternions_xyzw: npt.ArrayLike) -> FloatArray:
