@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
+from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..verification.summary import verification_summary
 from .params_args import (
     add_parameter_options,
@@ -86,6 +87,7 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
         help="MCAP input cut short or with corrupt chunks: use every complete message it still "
         "holds (copied first into a temporary file beside the output) instead of failing",
     )
+    add_max_pixels_option(parser)
     parser.add_argument(
         "--sidecar",
         action="store_true",
@@ -93,6 +95,18 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     )
     add_parameter_options(parser)
     add_verification_options(parser)
+
+
+def add_max_pixels_option(parser: argparse.ArgumentParser) -> None:
+    """--max-pixels (annotate, batch, evaluate): the pixel cap checked before decoding."""
+    parser.add_argument(
+        "--max-pixels",
+        type=positive_int,
+        default=DEFAULT_MAX_PIXELS,
+        metavar="N",
+        help="skip (count as 'too large') an image whose header claims more than N pixels, "
+        f"before decoding it (default {DEFAULT_MAX_PIXELS} = 8192x8192)",
+    )
 
 
 def annotate_options_from_args(args: argparse.Namespace, workers: int) -> AnnotateOptions:
@@ -108,6 +122,7 @@ def annotate_options_from_args(args: argparse.Namespace, workers: int) -> Annota
         workers=workers,
         verification=verification_from_args(args),
         intrinsics=intrinsics_from_args(args),
+        max_pixels=args.max_pixels,
     )
 
 

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import threading
@@ -34,6 +35,8 @@ from ..sinks.mcap_writer import (
 from ..sources import is_mcap_file, open_source, pick_image_topic
 from ..sources.camera_info import read_camera_info
 from ..sources.frame import Frame
+from ..sources.image_header import DEFAULT_MAX_PIXELS
+from ..sources.images import decode_gray
 from ..sources.salvage import SalvageReport, salvage_mcap
 from ..verification import (
     DEFAULT_VERIFICATION,
@@ -75,6 +78,9 @@ class AnnotateOptions:
     # Memory for cached per-frame verification features (evicted frames are re-read), shared
     # by the verification threads.
     verification_cache_bytes: int = DEFAULT_CACHE_BYTES
+    # An image whose header claims more pixels is skipped ("too large") before it is decoded,
+    # so that a decompression bomb cannot take the machine's memory.
+    max_pixels: int = DEFAULT_MAX_PIXELS
 
 
 @dataclass(frozen=True)
@@ -143,7 +149,7 @@ def verify_decisions(
     start = time.perf_counter()
     checked, stats = verify_in_threads(
         result.decisions,
-        lambda: LogFrameReader(read_path, topic, frame_times),
+        lambda: LogFrameReader(read_path, topic, frame_times, max_pixels=options.max_pixels),
         options.verification,
         intrinsics,
         options.workers,
@@ -309,7 +315,8 @@ def _annotate(
         if expected is not None:
             expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
         messages = source.image_messages(topic, options.start_ns, options.end_ns)
-        frames = decoded_frames(messages, counts, options.time_source, options.on_error)
+        decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
+        frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
         try:
             detector = make_detector(params)
             result = replay(recorder(frames), detector, progress, options.workers)

@@ -1,0 +1,179 @@
+"""Issue #21, items 2-4: no silent loss, `--recover` past damaged chunks, the pixel cap.
+
+Every hostile input is built here, in tmp_path, from a few good RTAB-Map frames: bombs are
+headers that claim huge sizes over a few bytes of data, so nothing here allocates much.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import sys
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.errors import ExitCode, ImageDecodeError
+from doseqslam_logs.sources.base import ImageMessage
+from doseqslam_logs.sources.image_header import DEFAULT_MAX_PIXELS, claimed_size
+from doseqslam_logs.sources.images import TOO_LARGE, decode_gray
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import make_bad_inputs as bad
+
+# --- inputs -----------------------------------------------------------------------------------
+
+
+def png_chunk(kind: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+
+def png_bomb(width: int, height: int) -> bytes:
+    """A PNG whose IHDR claims width x height (8-bit gray) over one tiny IDAT."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    idat = zlib.compress(bytes(width + 1))  # one row: a decoder would want them all
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + png_chunk(b"IHDR", ihdr)
+        + png_chunk(b"IDAT", idat)
+        + png_chunk(b"IEND", b"")
+    )
+
+
+def jpeg_claiming(jpeg: bytes, width: int, height: int) -> bytes:
+    """A real JPEG whose SOF marker is rewritten to claim width x height."""
+    data = bytearray(jpeg)
+    sof = next(i for i in range(2, len(data) - 9) if data[i] == 0xFF and data[i + 1] == 0xC0)
+    struct.pack_into(">HH", data, sof + 5, height, width)
+    return bytes(data)
+
+
+def compressed(data: bytes, log_ns: int = 1) -> ImageMessage:
+    return ImageMessage("/cam", log_ns, log_ns, "compressed", "png", 0, 0, 0, False, data)
+
+
+@pytest.fixture
+def jpegs(shared_data: Path) -> list[bytes]:
+    return bad.rtabmap_jpegs(shared_data, 6)
+
+
+def log_with(tmp_path: Path, jpegs: list[bytes], extra: dict[int, bytes]) -> Path:
+    """A ROS 2 MCAP of the good frames, frame i replaced by extra[i]."""
+    frames = [extra.get(i, data) for i, data in enumerate(jpegs)]
+    return bad.write_log(tmp_path / "log.mcap", bad.good_items(frames))
+
+
+def run_cli(*args: str | Path) -> int:
+    try:
+        return main([str(a) for a in args])
+    except SystemExit as exc:
+        return int(exc.code or 0)
+
+
+def metadata(path: Path) -> dict[str, str]:
+    with path.open("rb") as file:
+        for record in make_reader(file).iter_metadata():
+            if record.name == "doseqslam":
+                return dict(record.metadata)
+    raise AssertionError(f"{path}: no doseqslam metadata")
+
+
+# --- item 4: the pixel cap --------------------------------------------------------------------
+
+
+def test_png_claiming_20000_squared_is_refused_from_its_header() -> None:
+    bomb = png_bomb(20000, 20000)
+    assert len(bomb) < 100_000 and claimed_size(bomb) == (20000, 20000)
+    with pytest.raises(ImageDecodeError) as caught:
+        decode_gray(compressed(bomb))
+    assert caught.value.problem == TOO_LARGE
+    assert "20000x20000" in str(caught.value)
+
+
+def test_jpeg_sof_claim_is_refused(jpegs: list[bytes]) -> None:
+    bomb = jpeg_claiming(jpegs[0], 30000, 30000)
+    assert claimed_size(bomb) == (30000, 30000)
+    with pytest.raises(ImageDecodeError) as caught:
+        decode_gray(compressed(bomb))
+    assert caught.value.problem == TOO_LARGE
+
+
+def test_the_cap_is_an_option(jpegs: list[bytes]) -> None:
+    height, width = decode_gray(compressed(jpegs[0])).shape
+    assert claimed_size(jpegs[0]) == (width, height)
+    with pytest.raises(ImageDecodeError, match="more than --max-pixels"):
+        decode_gray(compressed(jpegs[0]), max_pixels=width * height - 1)
+    ok, png = cv2.imencode(".png", np.zeros((100, 100), np.uint8))
+    assert ok and decode_gray(compressed(png.tobytes()), max_pixels=10_000).shape == (100, 100)
+
+
+def test_raw_image_claiming_too_many_pixels() -> None:
+    raw = ImageMessage("/cam", 1, 1, "raw", "mono8", 9000, 9000, 9000, False, b"\0" * 10)
+    with pytest.raises(ImageDecodeError) as caught:
+        decode_gray(raw)
+    assert caught.value.problem == TOO_LARGE
+    assert DEFAULT_MAX_PIXELS < 9000 * 9000
+
+
+@pytest.mark.parametrize("ext", [".bmp", ".tiff", ".webp", ".pgm", ".png", ".jpg"])
+def test_header_sizes_match_what_opencv_decodes(ext: str) -> None:
+    image = np.zeros((37, 53, 3), np.uint8)
+    ok, encoded = cv2.imencode(ext, image if ext != ".pgm" else image[:, :, 0])
+    assert ok
+    assert claimed_size(encoded.tobytes()) == (53, 37)
+
+
+def test_webp_lossless_and_extended_headers() -> None:
+    image = np.zeros((37, 53, 3), np.uint8)
+    ok, lossless = cv2.imencode(".webp", image, [cv2.IMWRITE_WEBP_QUALITY, 101])
+    assert ok and lossless.tobytes()[12:16] == b"VP8L"
+    assert claimed_size(lossless.tobytes()) == (53, 37)
+    vp8x = b"RIFF" + bytes(4) + b"WEBPVP8X" + bytes(8) + (29999).to_bytes(3, "little") * 2
+    assert claimed_size(vp8x) == (30000, 30000)
+
+
+def test_annotate_skips_an_over_cap_frame_and_counts_it(
+    tmp_path: Path, jpegs: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = log_with(tmp_path, jpegs, {2: png_bomb(20000, 20000)})
+    out = tmp_path / "out.mcap"
+    assert run_cli("annotate", log, "-o", out, "--no-verify") == 0
+    line = capsys.readouterr().out
+    assert "5 frames" in line and "1 skipped frames (1 too large)" in line
+    assert json.loads(metadata(out)["frames_skipped_by_reason"]) == {TOO_LARGE: 1}
+
+
+def test_annotate_on_error_fail_exits_5_for_an_over_cap_frame(
+    tmp_path: Path, jpegs: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = log_with(tmp_path, jpegs, {1: jpeg_claiming(jpegs[1], 30000, 30000)})
+    out = tmp_path / "out.mcap"
+    code = run_cli("annotate", log, "-o", out, "--no-verify", "--on-error", "fail")
+    assert code == ExitCode.BAD_IMAGE and not out.exists()
+    assert "30000x30000" in capsys.readouterr().err
+
+
+def test_max_pixels_option_lets_a_large_frame_through_or_refuses_all(
+    tmp_path: Path, jpegs: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = log_with(tmp_path, jpegs, {})
+    out = tmp_path / "out.mcap"
+    code = run_cli("annotate", log, "-o", out, "--no-verify", "--max-pixels", "1000")
+    assert code == ExitCode.BAD_IMAGE  # not one frame under the cap: as for any unusable log
+    assert "6 too large" in capsys.readouterr().err
+
+
+def test_evaluate_images_refuses_a_folder_bomb(tmp_path: Path, jpegs: list[bytes]) -> None:
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for i, data in enumerate(jpegs):
+        (folder / f"{i}.jpg").write_bytes(data)
+    (folder / "3.jpg").write_bytes(png_bomb(20000, 20000))  # formats are told by content
+    np.save(tmp_path / "gt.npy", np.zeros((6, 6), np.uint8))
+    args = ("evaluate", "--images", folder, "--fps", "1", "--gt", tmp_path / "gt.npy")
+    assert run_cli(*args, "--no-verify") == ExitCode.BAD_IMAGE
