@@ -177,3 +177,111 @@ def test_evaluate_images_refuses_a_folder_bomb(tmp_path: Path, jpegs: list[bytes
     np.save(tmp_path / "gt.npy", np.zeros((6, 6), np.uint8))
     args = ("evaluate", "--images", folder, "--fps", "1", "--gt", tmp_path / "gt.npy")
     assert run_cli(*args, "--no-verify") == ExitCode.BAD_IMAGE
+
+
+# --- item 2: no silent loss -------------------------------------------------------------------
+
+RECORD_HEADER = struct.Struct("<BQ")  # opcode, length
+MESSAGE_OPCODE = 0x05
+
+
+def unchunked_copy(source: Path, target: Path) -> Path:
+    """The same records without chunks (mcap's writer adds Statistics and indexes)."""
+    from mcap.writer import Writer
+
+    with source.open("rb") as file, target.open("wb") as out:
+        reader = make_reader(file)
+        writer = Writer(out, use_chunking=False)
+        writer.start("ros2", "test")
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if schema is not None and schema.id not in schema_ids:
+                schema_ids[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channel_ids:
+                channel_ids[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_ids.get(channel.schema_id, 0)
+                )
+            writer.add_message(
+                channel_ids[channel.id], message.log_time, message.data, message.publish_time
+            )
+        writer.finish()
+    return target
+
+
+def record_offsets(data: bytes, opcode: int) -> list[int]:
+    """Offsets of the top-level records with `opcode` (after the leading magic)."""
+    offsets, position = [], len(bad.MCAP_MAGIC)
+    while position + RECORD_HEADER.size <= len(data):
+        op, length = RECORD_HEADER.unpack_from(data, position)
+        if op == opcode:
+            offsets.append(position)
+        if op == bad.FOOTER_OPCODE:
+            break
+        position += RECORD_HEADER.size + length
+    return offsets
+
+
+def annotate_json(*args: str | Path, capsys: pytest.CaptureFixture[str]) -> dict[str, object]:
+    assert run_cli("annotate", *args, "--no-verify", "--json") == 0
+    result: dict[str, object] = json.loads(capsys.readouterr().out)
+    return result
+
+
+def test_a_message_record_with_a_flipped_opcode_is_counted_missing(
+    tmp_path: Path, jpegs: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    flat = unchunked_copy(log_with(tmp_path, jpegs, {}), tmp_path / "flat.mcap")
+    data = bytearray(flat.read_bytes())
+    data[record_offsets(bytes(data), MESSAGE_OPCODE)[2]] = 0x80  # now an unknown record
+    flat.write_bytes(bytes(data))
+    out = tmp_path / "out.mcap"
+    result = annotate_json(flat, "-o", out, capsys=capsys)
+    assert result["frames"] == 5 and result["image_messages"] == 6
+    assert result["image_messages_promised"] == 6
+    assert result["frames_skipped_by_reason"] == {"missing from the data": 1}
+    entries = metadata(out)
+    assert entries["image_messages_promised"] == "6"
+    assert entries["image_messages_promised_by"] == "the Statistics record"
+    assert json.loads(entries["frames_skipped_by_reason"]) == {"missing from the data": 1}
+    assert run_cli("annotate", flat, "-o", tmp_path / "b.mcap", "--no-verify") == 0
+    line = capsys.readouterr().out
+    assert "1 skipped frames (1 missing from the data)" in line
+    assert "6 image messages promised by the Statistics record" in line
+
+
+def test_db3_rows_of_an_unknown_topic_id_are_counted(
+    tmp_path: Path, jpegs: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    import sqlite3
+
+    folder = bad.write_log(tmp_path / "bag", bad.good_items(jpegs), "db3")
+    (inner,) = folder.glob("*.db3")
+    with sqlite3.connect(inner) as db:
+        camera = db.execute("SELECT id FROM topics WHERE name LIKE '%compressed'").fetchone()[0]
+        db.execute(
+            f"UPDATE messages SET topic_id = 999 WHERE id IN (SELECT id FROM messages "
+            f"WHERE topic_id = {camera} LIMIT 2)"
+        )
+    db.close()
+    bare = tmp_path / "bare.db3"
+    bare.write_bytes(inner.read_bytes())
+    result = annotate_json(bare, "-o", tmp_path / "out.mcap", capsys=capsys)
+    assert result["unattributed_messages"] == 2 and result["frames"] == 4
+    assert metadata(tmp_path / "out.mcap")["unattributed_messages"] == "2"
+    assert run_cli("annotate", bare, "-o", tmp_path / "b.mcap", "--no-verify") == 0
+    assert "2 messages of undeclared topics (never readable)" in capsys.readouterr().out
+    # In the bag folder, metadata.yaml promised them to the camera topic: missing from the data.
+    result = annotate_json(folder, "-o", tmp_path / "c.mcap", capsys=capsys)
+    assert result["image_messages_promised"] == 6
+    assert result["frames_skipped_by_reason"] == {"missing from the data": 2}
+
+
+def test_a_whole_log_promises_what_it_holds(
+    tmp_path: Path, jpegs: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    result = annotate_json(log_with(tmp_path, jpegs, {}), "-o", tmp_path / "o.mcap", capsys=capsys)
+    assert result["image_messages_promised"] == result["image_messages"] == 6
+    assert result["frames_skipped"] == 0 and result["unattributed_messages"] == 0

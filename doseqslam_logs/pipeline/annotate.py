@@ -33,10 +33,12 @@ from ..sinks.mcap_writer import (
     write_annotated_mcap,
 )
 from ..sources import is_mcap_file, open_source, pick_image_topic
+from ..sources.base import Promise, Source
 from ..sources.camera_info import read_camera_info
 from ..sources.frame import Frame
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.images import decode_gray
+from ..sources.mcap_source import McapSource
 from ..sources.salvage import SalvageReport, salvage_mcap
 from ..verification import (
     DEFAULT_VERIFICATION,
@@ -46,7 +48,14 @@ from ..verification import (
     command_detector_parameters,
 )
 from ..verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
-from .decode import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
+from .decode import (
+    SKIP_CORRUPT_CHUNK,
+    SKIP_MISSING,
+    FrameCounts,
+    OnError,
+    TimeSource,
+    decoded_frames,
+)
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
@@ -93,6 +102,9 @@ class AnnotateResult:
     written: WriteSummary
     source_sha256: str
     recovery: SalvageReport | None = None  # what --recover found (MCAP inputs only)
+    # What the log's index or statistics promised for the topic (None: nothing to compare).
+    promise: Promise | None = None
+    unattributed: int = 0  # messages of undeclared topics (a .db3's rows of unknown topic ids)
     verification: Verification | None = None  # None when it was off
 
     @property
@@ -211,6 +223,8 @@ def run_metadata(
     topic: str,
     options: AnnotateOptions,
     recovery: SalvageReport | None = None,
+    promise: Promise | None = None,
+    unattributed: int = 0,
 ) -> RunMetadata:
     """The `doseqslam` metadata record of a run without verification."""
     return RunMetadata(
@@ -227,6 +241,9 @@ def run_metadata(
         end_ns=options.end_ns,
         on_error=options.on_error,
         image_messages=counts.messages,
+        image_messages_promised=None if promise is None else promise.count,
+        image_messages_promised_by="" if promise is None else promise.origin,
+        unattributed_messages=unattributed,
         frames_used=counts.used,
         frames_skipped=counts.skipped_total,
         frames_skipped_by_reason_json=json.dumps(counts.skipped_by_reason()),
@@ -239,6 +256,37 @@ def run_metadata(
         sequences=len(result.decisions),
         loop_closures=result.loop_closures,
     )
+
+
+def promised(
+    source: Source, log: Path, topic: str, options: AnnotateOptions, recovered: bool
+) -> Promise | None:
+    """What the log promises for the whole topic (None with a time range: the records count
+    the whole log). After --recover, the damaged file's own summary, when it still has one:
+    the copy's statistics count only what was copied."""
+    if options.start_ns is not None or options.end_ns is not None:
+        return None
+    if not recovered:
+        return source.promised_messages(topic)
+    try:
+        with McapSource(log) as original:
+            return original.promised_messages(topic)
+    except SourceError:
+        return None
+
+
+def count_missing(counts: FrameCounts, promise: Promise | None, log: Path, topic: str) -> None:
+    """Messages promised but not in the data: counted as skipped, so that nothing is lost
+    silently (found + missing = promised)."""
+    if promise is None or promise.count <= counts.messages:
+        return
+    missing = promise.count - counts.messages
+    counts.messages += missing
+    detail = (
+        f"{promise.origin} of {log.name} promises {promise.count} messages of {topic}; "
+        f"the data holds {promise.count - missing}"
+    )
+    counts.skip(SKIP_MISSING, detail, missing)
 
 
 def annotate_log(
@@ -312,6 +360,8 @@ def _annotate(
             lost = recovery.lost_by_topic[topic]
             counts.messages += lost
             counts.skip(SKIP_CORRUPT_CHUNK, f"{lost} messages of {topic} in corrupt chunks", lost)
+        promise = promised(source, log, topic, options, recovery is not None)
+        unattributed = source.unattributed_messages()
         if expected is not None:
             expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
         messages = source.image_messages(topic, options.start_ns, options.end_ns)
@@ -323,7 +373,13 @@ def _annotate(
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
-    if recovery is not None and counts.messages == counts.skipped[SKIP_CORRUPT_CHUNK]:
+    count_missing(counts, promise, log, topic)
+    if (
+        recovery is not None
+        and counts.used == 0
+        and counts.messages
+        == sum(counts.skipped[reason] for reason in (SKIP_CORRUPT_CHUNK, SKIP_MISSING))
+    ):
         raise SourceError(
             f"{log}: nothing to recover on {topic}: no complete image message "
             f"({recovery.describe()})"
@@ -338,7 +394,9 @@ def _annotate(
     frame_times = recorder.frame_times()
     verification = verify_decisions(read_path, topic, result, frame_times, options)
     sha256 = digest.result()
-    metadata = run_metadata(params, result, counts, log, sha256, topic, options, recovery)
+    metadata = run_metadata(
+        params, result, counts, log, sha256, topic, options, recovery, promise, unattributed
+    )
     if verification is not None:
         metadata = verification.recorded_in(metadata)
     annotations = Annotations.from_decisions(
@@ -351,5 +409,15 @@ def _annotate(
     )
     written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
     return AnnotateResult(
-        log, output, topic, result, counts, written, sha256, recovery, verification
+        log,
+        output,
+        topic,
+        result,
+        counts,
+        written,
+        sha256,
+        recovery,
+        promise,
+        unattributed,
+        verification,
     )

@@ -43,6 +43,9 @@ SKIP_DECODE = "undecodable image"
 SKIP_BACKWARDS = "timestamp earlier than the previous frame"
 SKIP_DUPLICATE = "duplicate message"
 SKIP_CORRUPT_CHUNK = "lost in a corrupt chunk"  # annotate --recover: see annotate.py
+# The log's Statistics record / bag index / metadata.yaml promises more messages of the topic
+# than its data holds (a record lost without a trace in the data section).
+SKIP_MISSING = "missing from the data"
 SKIP_TOO_LARGE = TOO_LARGE  # the header claims more than --max-pixels: refused undecoded
 
 # Header stamps that move this much more (or less) than the log times between two frames mean
