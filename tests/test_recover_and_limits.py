@@ -7,6 +7,7 @@ headers that claim huge sizes over a few bytes of data, so nothing here allocate
 from __future__ import annotations
 
 import json
+import re
 import struct
 import sys
 import zlib
@@ -250,6 +251,9 @@ def test_a_message_record_with_a_flipped_opcode_is_counted_missing(
     line = capsys.readouterr().out
     assert "1 skipped frames (1 missing from the data)" in line
     assert "6 image messages promised by the Statistics record" in line
+    recovered = annotate_json(flat, "-o", tmp_path / "c.mcap", "--recover", capsys=capsys)
+    assert recovered["frames_skipped_by_reason"] == {"missing from the data": 1}
+    assert recovered["recovered"] == {**recovered["recovered"], "messages": 5, "known_messages": 6}  # type: ignore[dict-item]
 
 
 def test_db3_rows_of_an_unknown_topic_id_are_counted(
@@ -285,3 +289,144 @@ def test_a_whole_log_promises_what_it_holds(
     result = annotate_json(log_with(tmp_path, jpegs, {}), "-o", tmp_path / "o.mcap", capsys=capsys)
     assert result["image_messages_promised"] == result["image_messages"] == 6
     assert result["frames_skipped"] == 0 and result["unattributed_messages"] == 0
+
+
+# --- item 3: --recover past damaged chunks, and chunks cut short ------------------------------
+
+CHUNK_FIELDS = 8 + 8 + 8 + 4  # start time, end time, uncompressed size, CRC
+
+
+@pytest.fixture
+def twelve(shared_data: Path) -> list[bytes]:
+    return bad.rtabmap_jpegs(shared_data, 12)
+
+
+def chunked_log(path: Path, jpegs: list[bytes], compression: str = "zstd") -> Path:
+    return bad.write_log(path, bad.good_items(jpegs), mcap_compression=compression)  # type: ignore[arg-type]
+
+
+def patched(source: Path, target: Path, offset: int, value: bytes) -> Path:
+    data = bytearray(source.read_bytes())
+    data[offset : offset + len(value)] = value
+    target.write_bytes(bytes(data))
+    return target
+
+
+def records_length_offset(path: Path, chunk_start: int) -> int:
+    data = path.read_bytes()
+    name_at = chunk_start + 9 + CHUNK_FIELDS
+    (name_length,) = struct.unpack_from("<I", data, name_at)
+    return name_at + 4 + name_length
+
+
+def recover(log: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> dict[str, object]:
+    result = annotate_json(log, "-o", out, "--recover", capsys=capsys)
+    recovered = result["recovered"]
+    assert isinstance(recovered, dict)
+    return {**result, **{f"r_{k}": v for k, v in recovered.items()}}
+
+
+def test_a_chunk_with_a_huge_records_length_is_dropped_and_the_rest_read(
+    tmp_path: Path, twelve: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    good = chunked_log(tmp_path / "good.mcap", twelve)
+    start = bad.chunk_spans(good)[1][0]
+    huge = struct.pack("<Q", 2**40)
+    log = patched(good, tmp_path / "bad.mcap", records_length_offset(good, start), huge)
+    result = recover(log, tmp_path / "out.mcap", capsys)
+    assert result["frames"] == 9  # chunks 1, 3 and 4; the old salvage stopped at chunk 2: 3
+    assert result["frames_skipped_by_reason"] == {"lost in a corrupt chunk": 3}
+    assert result["r_corrupt_chunks"] == 1 and result["r_uncountable_chunks"] == 0
+    assert result["r_known_from"] == "the Statistics record"
+    assert result["r_messages"] == int(str(result["r_known_messages"])) - 3
+
+
+def test_a_corrupt_chunk_record_length_is_taken_from_the_chunk_index(
+    tmp_path: Path, twelve: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    good = chunked_log(tmp_path / "good.mcap", twelve)
+    start = bad.chunk_spans(good)[1][0]
+    log = patched(good, tmp_path / "bad.mcap", start + 1, struct.pack("<Q", 2**50))
+    result = recover(log, tmp_path / "out.mcap", capsys)
+    assert result["frames"] == 12 and result["frames_skipped"] == 0
+    assert result["r_repaired_lengths"] == 1
+    assert result["r_messages"] == result["r_known_messages"]
+    assert run_cli("annotate", log, "-o", tmp_path / "b.mcap", "--recover", "--no-verify") == 0
+    assert "1 chunk length(s) taken from the chunk index" in capsys.readouterr().out
+
+
+def test_without_an_index_a_scan_finds_the_next_chunk(
+    tmp_path: Path, twelve: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    good = bad.without_summary(chunked_log(tmp_path / "g.mcap", twelve), tmp_path / "u.mcap")
+    start = next(  # the second chunk record, found by walking the records
+        offset for n, offset in enumerate(record_offsets(good.read_bytes(), 0x06)) if n == 1
+    )
+    log = patched(good, tmp_path / "bad.mcap", start + 1, struct.pack("<Q", 2**50))
+    result = recover(log, tmp_path / "out.mcap", capsys)
+    assert result["frames"] == 9 and result["r_skipped_regions"] == 1
+    assert result["r_complete"] is True
+    # The message indexes at the end of the skipped region count the chunk's messages.
+    assert result["frames_skipped_by_reason"] == {"lost in a corrupt chunk": 3}
+    assert result["r_known_messages"] == 12 and result["r_uncountable_chunks"] == 0
+
+
+def cut_in_last_chunk(good: Path, target: Path, fraction: float) -> tuple[Path, int]:
+    """The log cut `fraction` into its last chunk; for an uncompressed chunk, how many of its
+    message records lie whole before the cut."""
+    start, length = bad.chunk_spans(good)[-1]
+    cut_at = start + int(length * fraction)
+    bad.cut(good, target, cut_at)
+    data = good.read_bytes()
+    whole, position = 0, records_length_offset(good, start) + 8
+    while position + 9 <= start + length:
+        opcode, size = RECORD_HEADER.unpack_from(data, position)
+        position += 9 + size
+        whole += opcode == MESSAGE_OPCODE and position <= cut_at
+    return target, whole
+
+
+@pytest.mark.parametrize("compression", ["none", "lz4", "zstd"])
+def test_a_chunk_cut_short_gives_its_whole_messages(
+    tmp_path: Path,
+    twelve: list[bytes],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    compression: str,
+) -> None:
+    monkeypatch.setattr(bad, "FRAMES_PER_CHUNK", 6)
+    # Frames of ~100 kB: a chunk spans several lz4 (64 kB) and zstd (128 kB) blocks.
+    large = [bad.resized_jpeg(data, 1280, 960) for data in twelve]
+    good = chunked_log(tmp_path / "good.mcap", large, compression)
+    log, whole = cut_in_last_chunk(good, tmp_path / "cut.mcap", 0.8)
+    result = recover(log, tmp_path / "out.mcap", capsys)
+    partial = int(str(result["r_partial_chunk_messages"]))
+    assert result["frames"] == 6 + partial and result["r_complete"] is False
+    assert "truncated" in str(result["r_stop_reason"])
+    if compression == "none":
+        assert partial == whole >= 4  # every whole message before the cut
+    else:  # up to the last whole block the decompressor could finish
+        assert 2 <= partial < 6
+
+
+def test_a_cut_inside_the_first_chunk_is_called_truncated(
+    tmp_path: Path, twelve: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    good = chunked_log(tmp_path / "good.mcap", twelve[:3])
+    start, _ = bad.chunk_spans(good)[0]
+    log = bad.cut(good, tmp_path / "cut.mcap", start + 200)
+    code = run_cli("annotate", log, "-o", tmp_path / "out.mcap", "--recover", "--no-verify")
+    err = capsys.readouterr().err
+    assert code == ExitCode.UNREADABLE_INPUT and "truncated" in err and "corrupt" not in err
+    assert err.count("\n") == 1 and err.startswith("doseqslam-logs: error: ")
+
+
+def test_recovered_of_known_is_on_the_summary_line(
+    tmp_path: Path, twelve: list[bytes], capsys: pytest.CaptureFixture[str]
+) -> None:
+    good = chunked_log(tmp_path / "good.mcap", twelve)
+    start = bad.chunk_spans(good)[2][0]
+    log = patched(good, tmp_path / "bad.mcap", records_length_offset(good, start), b"\xff" * 8)
+    assert run_cli("annotate", log, "-o", tmp_path / "out.mcap", "--recover", "--no-verify") == 0
+    line = capsys.readouterr().out
+    assert re.search(r"recovered (\d+) of (\d+) known messages \(known from the Stat", line)
