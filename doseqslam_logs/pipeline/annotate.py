@@ -289,6 +289,26 @@ def count_missing(counts: FrameCounts, promise: Promise | None, log: Path, topic
     counts.skip(SKIP_MISSING, detail, missing)
 
 
+def refuse_no_frame(
+    counts: FrameCounts, recovery: SalvageReport | None, log: Path, topic: str
+) -> None:
+    """Raises when not one frame was used: SourceError when --recover found no complete image
+    message, else ImageDecodeError (what every skipped one was)."""
+    lost = sum(counts.skipped[reason] for reason in (SKIP_CORRUPT_CHUNK, SKIP_MISSING))
+    if recovery is not None and counts.used == 0 and counts.messages == lost:
+        raise SourceError(
+            f"{log}: nothing to recover on {topic}: no complete image message "
+            f"({recovery.describe()})"
+        )
+    if counts.used == 0 and counts.messages > 0:
+        reasons = ", ".join(f"{n} {why}" for why, n in counts.skipped_by_reason().items())
+        first = next(iter(counts.first_skip.values()), "")
+        raise ImageDecodeError(
+            f"{log}: none of the {counts.messages} image messages of {topic} could be used "
+            f"({reasons}); first: {first}"
+        )
+
+
 def annotate_log(
     log: str | Path,
     output: str | Path,
@@ -374,23 +394,7 @@ def _annotate(
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
     count_missing(counts, promise, log, topic)
-    if (
-        recovery is not None
-        and counts.used == 0
-        and counts.messages
-        == sum(counts.skipped[reason] for reason in (SKIP_CORRUPT_CHUNK, SKIP_MISSING))
-    ):
-        raise SourceError(
-            f"{log}: nothing to recover on {topic}: no complete image message "
-            f"({recovery.describe()})"
-        )
-    if counts.used == 0 and counts.messages > 0:
-        reasons = ", ".join(f"{n} {why}" for why, n in counts.skipped_by_reason().items())
-        first = next(iter(counts.first_skip.values()), "")
-        raise ImageDecodeError(
-            f"{log}: none of the {counts.messages} image messages of {topic} could be used "
-            f"({reasons}); first: {first}"
-        )
+    refuse_no_frame(counts, recovery, log, topic)
     frame_times = recorder.frame_times()
     verification = verify_decisions(read_path, topic, result, frame_times, options)
     sha256 = digest.result()
