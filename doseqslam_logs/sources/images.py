@@ -151,7 +151,8 @@ def decode_gray(msg: ImageMessage, max_pixels: int = DEFAULT_MAX_PIXELS) -> Gray
     Raises:
         ImageDecodeError: the message could not be deserialized (`msg.decode_error`), the raw
             encoding is unknown, width/height/step/data length do not fit together, or the
-            compressed data is empty, neither JPEG nor PNG, or fails to decode.
+            compressed data is empty, neither JPEG nor PNG, or fails to decode; problem
+            TOO_LARGE when the header claims more than `max_pixels`.
     """
     if msg.decode_error is not None:
         raise ImageDecodeError(msg.decode_error, UNDESERIALIZABLE)
