@@ -500,6 +500,11 @@ class RunMetadata:
     intrinsics_source: str = ""
     verified_pairs: int = 0
     accepted_pairs: int = 0
+    # What the log's index or statistics promised for the topic ("" / None: no such record,
+    # or a time range was asked for), and messages of undeclared topics (never readable).
+    image_messages_promised: int | None = None
+    image_messages_promised_by: str = ""
+    unattributed_messages: int = 0
     tool: str = "doseqslam-logs"
     recorded: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
 
@@ -519,6 +524,9 @@ class RunMetadata:
         ("end_ns", "end_ns"),
         ("on_error", "on_error"),
         ("image_messages", "image_messages"),
+        ("image_messages_promised", "image_messages_promised"),
+        ("image_messages_promised_by", "image_messages_promised_by"),
+        ("unattributed_messages", "unattributed_messages"),
         ("frames_used", "frames_used"),
         ("frames_skipped", "frames_skipped"),
         ("frames_skipped_by_reason", "frames_skipped_by_reason_json"),
@@ -539,7 +547,9 @@ class RunMetadata:
         ("verified_pairs", "verified_pairs"),
         ("accepted_pairs", "accepted_pairs"),
     )
-    _OPTIONAL_INTS: ClassVar[frozenset[str]] = frozenset({"start_ns", "end_ns"})
+    _OPTIONAL_INTS: ClassVar[frozenset[str]] = frozenset(
+        {"start_ns", "end_ns", "image_messages_promised"}
+    )
 
     @property
     def parameters(self) -> dict[str, Any]:

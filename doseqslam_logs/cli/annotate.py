@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
 from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
+from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..verification.summary import verification_summary
 from .params_args import (
     add_parameter_options,
@@ -38,6 +40,11 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     parser.add_argument("log", type=Path, help="MCAP file, ROS 1 .bag, rosbag2 folder or .db3")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.mcap")
     add_run_options(parser)
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        help="print the run's counts as one JSON object instead of the summary line",
+    )
     parser.add_argument(
         "--workers",
         type=positive_int,
@@ -86,6 +93,7 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
         help="MCAP input cut short or with corrupt chunks: use every complete message it still "
         "holds (copied first into a temporary file beside the output) instead of failing",
     )
+    add_max_pixels_option(parser)
     parser.add_argument(
         "--sidecar",
         action="store_true",
@@ -93,6 +101,18 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     )
     add_parameter_options(parser)
     add_verification_options(parser)
+
+
+def add_max_pixels_option(parser: argparse.ArgumentParser) -> None:
+    """--max-pixels (annotate, batch, evaluate): the pixel cap checked before decoding."""
+    parser.add_argument(
+        "--max-pixels",
+        type=positive_int,
+        default=DEFAULT_MAX_PIXELS,
+        metavar="N",
+        help="skip (count as 'too large') an image whose header claims more than N pixels, "
+        f"before decoding it (default {DEFAULT_MAX_PIXELS} = 8192x8192)",
+    )
 
 
 def annotate_options_from_args(args: argparse.Namespace, workers: int) -> AnnotateOptions:
@@ -108,6 +128,7 @@ def annotate_options_from_args(args: argparse.Namespace, workers: int) -> Annota
         workers=workers,
         verification=verification_from_args(args),
         intrinsics=intrinsics_from_args(args),
+        max_pixels=args.max_pixels,
     )
 
 
@@ -124,6 +145,10 @@ def summary_line(result: AnnotateResult) -> str:
         notes.append(f"{counts.clock_jumps} camera clock jumps bridged with the log time")
     if result.recovery is not None and result.recovery.damaged:
         notes.append(f"recovered: {result.recovery.describe()}")
+    if result.promise is not None:
+        notes.append(f"{result.promise.count} image messages promised by {result.promise.origin}")
+    if result.unattributed:
+        notes.append(f"{result.unattributed} messages of undeclared topics (never readable)")
     verification = result.verification
     if verification is not None:
         stats = verification.stats
@@ -138,6 +163,28 @@ def summary_line(result: AnnotateResult) -> str:
         f"{replay.wall_time_s:.1f} s, {replay.frames_per_second:.0f} frames/s"
         + "".join(f"; {note}" for note in notes)
     )
+
+
+def result_json(result: AnnotateResult) -> dict[str, object]:
+    """The summary line's figures for machines: every image message accounted for (promised,
+    used, skipped by reason) and what --recover read."""
+    counts, promise = result.counts, result.promise
+    return {
+        "output": str(result.output_path),
+        "input": str(result.input_path),
+        "topic": result.topic,
+        "frames": result.replay.frames,
+        "sequences": len(result.replay.decisions),
+        "loop_closures": result.loop_closures,
+        "image_messages": counts.messages,
+        "image_messages_promised": None if promise is None else promise.count,
+        "image_messages_promised_by": None if promise is None else promise.origin,
+        "frames_used": counts.used,
+        "frames_skipped": counts.skipped_total,
+        "frames_skipped_by_reason": counts.skipped_by_reason(),
+        "unattributed_messages": result.unattributed,
+        "recovered": None if result.recovery is None else result.recovery.as_metadata(),
+    }
 
 
 def warnings(result: AnnotateResult) -> list[str]:
@@ -166,5 +213,5 @@ def run(args: argparse.Namespace) -> int:
         progress.close()
     for line in warnings(result):
         print(f"doseqslam-logs: warning: {args.log}: {' '.join(line.split())}", file=sys.stderr)
-    print(summary_line(result))
+    print(json.dumps(result_json(result)) if args.json else summary_line(result))
     return 0

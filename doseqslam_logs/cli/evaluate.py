@@ -19,6 +19,7 @@ from ..errors import UsageError
 from ..evaluation.folder_run import evaluate_folder
 from ..evaluation.groundtruth import load_ground_truth
 from . import evaluate_log
+from .annotate import add_max_pixels_option
 from .params_args import (
     add_parameter_options,
     add_verification_options,
@@ -65,6 +66,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         help="count a match within +-K frames of a ground-truth cell (default 0)",
     )
     parser.add_argument("--json", action="store_true", help="print the results as JSON")
+    add_max_pixels_option(parser)
     evaluate_log.add_log_options(parser)
     add_parameter_options(parser)
     add_verification_options(parser)  # --images only: a log records its own verification
@@ -130,6 +132,7 @@ def _run_images(args: argparse.Namespace) -> int:
             args.tolerance,
             progress=progress,
             expected=expected,
+            max_pixels=args.max_pixels,
         )
     finally:
         progress.close()

@@ -20,6 +20,7 @@ from ..errors import GroundTruthError
 from ..pipeline.replay import ReplayResult, replay
 from ..pipeline.reread import FolderFrameReader
 from ..sources.image_folder import folder_frames, folder_time_ns, list_images
+from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..verification import (
     DEFAULT_VERIFICATION,
     Intrinsics,
@@ -148,6 +149,7 @@ def evaluate_folder(
     gt_variable: str | None = None,
     progress: Callable[[int], None] | None = None,
     expected: Callable[[int], None] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
 ) -> FolderEvaluation:
     """Replay the detector over the folder's images (natural file-name order, stamped at `fps`),
     verify its candidates, and score both against `gt` (one row per image), as
@@ -155,8 +157,9 @@ def evaluate_folder(
     verification, else the paper's. `expected(images)` is called once the folder is listed,
     `progress(frames done)` after each frame.
 
-    Raises SourceError (no images), GroundTruthError (unreadable ground truth, or not one row
-    per image: checked before the run), ParameterError.
+    Raises SourceError (no images, or one that cannot be decoded), ImageDecodeError (an
+    image over `max_pixels`, refused from its header), GroundTruthError (unreadable ground
+    truth, or not one row per image: checked before the run), ParameterError.
     """
     images = Path(images)
     if params is None:
@@ -170,8 +173,12 @@ def evaluate_folder(
         )
     if expected is not None:
         expected(len(files))
-    result = replay(folder_frames(images, fps), make_detector(params), progress)
-    checked = None if verification is None else _verify(files, result, verification, intrinsics)
+    result = replay(folder_frames(images, fps, max_pixels), make_detector(params), progress)
+    checked = (
+        None
+        if verification is None
+        else _verify(files, result, verification, intrinsics, max_pixels)
+    )
     scores = _scores(result, checked, truth, params, fps, tolerance)
     return FolderEvaluation(images, fps, params, result, verification=checked, **scores)
 
@@ -201,9 +208,10 @@ def _verify(
     result: ReplayResult,
     params: VerificationParameters,
     intrinsics: Intrinsics | None,
+    max_pixels: int,
 ) -> FolderVerification:
     start = time.perf_counter()
-    reader = FolderFrameReader(files)  # stateless: one for every thread
+    reader = FolderFrameReader(files, max_pixels)  # stateless: one for every thread
     checked, stats = verify_in_threads(
         result.decisions, lambda: nullcontext(reader), params, intrinsics, VERIFY_THREADS
     )

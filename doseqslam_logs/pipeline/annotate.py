@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import threading
@@ -32,8 +33,12 @@ from ..sinks.mcap_writer import (
     write_annotated_mcap,
 )
 from ..sources import is_mcap_file, open_source, pick_image_topic
+from ..sources.base import Promise, Source
 from ..sources.camera_info import read_camera_info
 from ..sources.frame import Frame
+from ..sources.image_header import DEFAULT_MAX_PIXELS
+from ..sources.images import decode_gray
+from ..sources.mcap_source import McapSource
 from ..sources.salvage import SalvageReport, salvage_mcap
 from ..verification import (
     DEFAULT_VERIFICATION,
@@ -43,7 +48,14 @@ from ..verification import (
     command_detector_parameters,
 )
 from ..verification.stage import DEFAULT_CACHE_BYTES, VerifiedDecision, verify_in_threads
-from .decode import SKIP_CORRUPT_CHUNK, FrameCounts, OnError, TimeSource, decoded_frames
+from .decode import (
+    SKIP_CORRUPT_CHUNK,
+    SKIP_MISSING,
+    FrameCounts,
+    OnError,
+    TimeSource,
+    decoded_frames,
+)
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
@@ -75,6 +87,9 @@ class AnnotateOptions:
     # Memory for cached per-frame verification features (evicted frames are re-read), shared
     # by the verification threads.
     verification_cache_bytes: int = DEFAULT_CACHE_BYTES
+    # An image whose header claims more pixels is skipped ("too large") before it is decoded,
+    # so that a decompression bomb cannot take the machine's memory.
+    max_pixels: int = DEFAULT_MAX_PIXELS
 
 
 @dataclass(frozen=True)
@@ -87,6 +102,9 @@ class AnnotateResult:
     written: WriteSummary
     source_sha256: str
     recovery: SalvageReport | None = None  # what --recover found (MCAP inputs only)
+    # What the log's index or statistics promised for the topic (None: nothing to compare).
+    promise: Promise | None = None
+    unattributed: int = 0  # messages of undeclared topics (a .db3's rows of unknown topic ids)
     verification: Verification | None = None  # None when it was off
 
     @property
@@ -143,7 +161,7 @@ def verify_decisions(
     start = time.perf_counter()
     checked, stats = verify_in_threads(
         result.decisions,
-        lambda: LogFrameReader(read_path, topic, frame_times),
+        lambda: LogFrameReader(read_path, topic, frame_times, max_pixels=options.max_pixels),
         options.verification,
         intrinsics,
         options.workers,
@@ -205,6 +223,8 @@ def run_metadata(
     topic: str,
     options: AnnotateOptions,
     recovery: SalvageReport | None = None,
+    promise: Promise | None = None,
+    unattributed: int = 0,
 ) -> RunMetadata:
     """The `doseqslam` metadata record of a run without verification."""
     return RunMetadata(
@@ -221,6 +241,9 @@ def run_metadata(
         end_ns=options.end_ns,
         on_error=options.on_error,
         image_messages=counts.messages,
+        image_messages_promised=None if promise is None else promise.count,
+        image_messages_promised_by="" if promise is None else promise.origin,
+        unattributed_messages=unattributed,
         frames_used=counts.used,
         frames_skipped=counts.skipped_total,
         frames_skipped_by_reason_json=json.dumps(counts.skipped_by_reason()),
@@ -233,6 +256,57 @@ def run_metadata(
         sequences=len(result.decisions),
         loop_closures=result.loop_closures,
     )
+
+
+def promised(
+    source: Source, log: Path, topic: str, options: AnnotateOptions, recovered: bool
+) -> Promise | None:
+    """What the log promises for the whole topic (None with a time range: the records count
+    the whole log). After --recover, the damaged file's own summary, when it still has one:
+    the copy's statistics count only what was copied."""
+    if options.start_ns is not None or options.end_ns is not None:
+        return None
+    if not recovered:
+        return source.promised_messages(topic)
+    try:
+        with McapSource(log) as original:
+            return original.promised_messages(topic)
+    except SourceError:
+        return None
+
+
+def count_missing(counts: FrameCounts, promise: Promise | None, log: Path, topic: str) -> None:
+    """Messages promised but not in the data: counted as skipped, so that nothing is lost
+    silently (found + missing = promised)."""
+    if promise is None or promise.count <= counts.messages:
+        return
+    missing = promise.count - counts.messages
+    counts.messages += missing
+    detail = (
+        f"{promise.origin} of {log.name} promises {promise.count} messages of {topic}; "
+        f"the data holds {promise.count - missing}"
+    )
+    counts.skip(SKIP_MISSING, detail, missing)
+
+
+def refuse_no_frame(
+    counts: FrameCounts, recovery: SalvageReport | None, log: Path, topic: str
+) -> None:
+    """Raises when not one frame was used: SourceError when --recover found no complete image
+    message, else ImageDecodeError (what every skipped one was)."""
+    lost = sum(counts.skipped[reason] for reason in (SKIP_CORRUPT_CHUNK, SKIP_MISSING))
+    if recovery is not None and counts.used == 0 and counts.messages == lost:
+        raise SourceError(
+            f"{log}: nothing to recover on {topic}: no complete image message "
+            f"({recovery.describe()})"
+        )
+    if counts.used == 0 and counts.messages > 0:
+        reasons = ", ".join(f"{n} {why}" for why, n in counts.skipped_by_reason().items())
+        first = next(iter(counts.first_skip.values()), "")
+        raise ImageDecodeError(
+            f"{log}: none of the {counts.messages} image messages of {topic} could be used "
+            f"({reasons}); first: {first}"
+        )
 
 
 def annotate_log(
@@ -306,32 +380,27 @@ def _annotate(
             lost = recovery.lost_by_topic[topic]
             counts.messages += lost
             counts.skip(SKIP_CORRUPT_CHUNK, f"{lost} messages of {topic} in corrupt chunks", lost)
+        promise = promised(source, log, topic, options, recovery is not None)
+        unattributed = source.unattributed_messages()
         if expected is not None:
             expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
         messages = source.image_messages(topic, options.start_ns, options.end_ns)
-        frames = decoded_frames(messages, counts, options.time_source, options.on_error)
+        decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
+        frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
         try:
             detector = make_detector(params)
             result = replay(recorder(frames), detector, progress, options.workers)
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
-    if recovery is not None and counts.messages == counts.skipped[SKIP_CORRUPT_CHUNK]:
-        raise SourceError(
-            f"{log}: nothing to recover on {topic}: no complete image message "
-            f"({recovery.describe()})"
-        )
-    if counts.used == 0 and counts.messages > 0:
-        reasons = ", ".join(f"{n} {why}" for why, n in counts.skipped_by_reason().items())
-        first = next(iter(counts.first_skip.values()), "")
-        raise ImageDecodeError(
-            f"{log}: none of the {counts.messages} image messages of {topic} could be used "
-            f"({reasons}); first: {first}"
-        )
+    count_missing(counts, promise, log, topic)
+    refuse_no_frame(counts, recovery, log, topic)
     frame_times = recorder.frame_times()
     verification = verify_decisions(read_path, topic, result, frame_times, options)
     sha256 = digest.result()
-    metadata = run_metadata(params, result, counts, log, sha256, topic, options, recovery)
+    metadata = run_metadata(
+        params, result, counts, log, sha256, topic, options, recovery, promise, unattributed
+    )
     if verification is not None:
         metadata = verification.recorded_in(metadata)
     annotations = Annotations.from_decisions(
@@ -344,5 +413,15 @@ def _annotate(
     )
     written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
     return AnnotateResult(
-        log, output, topic, result, counts, written, sha256, recovery, verification
+        log,
+        output,
+        topic,
+        result,
+        counts,
+        written,
+        sha256,
+        recovery,
+        promise,
+        unattributed,
+        verification,
     )

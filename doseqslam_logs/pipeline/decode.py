@@ -2,6 +2,8 @@
 
 Rules (docs/robustness.md has them per case):
 
+* an image whose header claims more than the pixel cap is skipped under SKIP_TOO_LARGE, before
+  it is decoded (or raises with on_error="fail");
 * an undecodable image is skipped under SKIP_DECODE and counted by its problem ("empty image",
   "corrupt compressed image", "raw size mismatch", ...), or raises with on_error="fail";
 * a message identical to the previous frame's (same log time, stamp and bytes: recorded twice)
@@ -31,7 +33,7 @@ import numpy.typing as npt
 from ..errors import ImageDecodeError, TimestampError
 from ..sources.base import ImageMessage
 from ..sources.frame import Frame
-from ..sources.images import decode_gray
+from ..sources.images import TOO_LARGE, decode_gray
 
 TimeSource = Literal["header", "log"]
 OnError = Literal["skip", "fail"]
@@ -41,6 +43,10 @@ SKIP_DECODE = "undecodable image"
 SKIP_BACKWARDS = "timestamp earlier than the previous frame"
 SKIP_DUPLICATE = "duplicate message"
 SKIP_CORRUPT_CHUNK = "lost in a corrupt chunk"  # annotate --recover: see annotate.py
+# The log's Statistics record / bag index / metadata.yaml promises more messages of the topic
+# than its data holds (a record lost without a trace in the data section).
+SKIP_MISSING = "missing from the data"
+SKIP_TOO_LARGE = TOO_LARGE  # the header claims more than --max-pixels: refused undecoded
 
 # Header stamps that move this much more (or less) than the log times between two frames mean
 # the camera clock jumped. Transport latency varies by milliseconds, a stalled recorder by
@@ -163,6 +169,9 @@ def decoded_frames(
         except ImageDecodeError as exc:
             if on_error == "fail":
                 raise
+            if exc.problem == TOO_LARGE:  # not damage: a size the run refuses to decode
+                counts.skip(SKIP_TOO_LARGE, str(exc))
+                continue
             counts.skip(SKIP_DECODE, str(exc))
             counts.undecodable[exc.problem] += 1
             continue

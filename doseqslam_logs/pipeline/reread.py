@@ -20,12 +20,11 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
-import cv2
-import numpy as np
-
 from ..annotations.records import NO_STAMP, FrameTimes
 from ..sources import open_source
 from ..sources.base import ImageMessage
+from ..sources.image_folder import read_gray_file
+from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.images import decode_gray
 from ..verification.geometry import GrayImage
 
@@ -61,8 +60,10 @@ class LogFrameReader:
         topic: str,
         frame_times: FrameTimes,
         cache_bytes: int = MESSAGE_CACHE_BYTES,
+        max_pixels: int = DEFAULT_MAX_PIXELS,
     ) -> None:
         self.path, self.topic, self.times = Path(path), topic, frame_times
+        self.max_pixels = max_pixels  # the run's cap: the frames it accepted decode again
         self.cache_bytes = cache_bytes
         self.reads = 0  # ranged reads of the log (for benchmarks)
         self._source = open_source(self.path)
@@ -83,7 +84,7 @@ class LogFrameReader:
             cached = run if not missing else [i for i in run if i < missing[0]]
             for index in cached:
                 self._messages.move_to_end(index)
-                yield index, decode_gray(self._messages[index])
+                yield index, decode_gray(self._messages[index], self.max_pixels)
             if missing:
                 yield from self._read(run[len(cached) :], missing[0])
 
@@ -103,7 +104,7 @@ class LogFrameReader:
                     self._keep(index, message)
                     if index in missing:  # the read is in index (log-time) order
                         missing.discard(index)
-                        yield index, decode_gray(message)
+                        yield index, decode_gray(message, self.max_pixels)
         if missing:
             raise LookupError(
                 f"{self.path}: frames {sorted(missing)[:5]} of {self.topic} not found again"
@@ -137,12 +138,10 @@ class LogFrameReader:
 class FolderFrameReader:
     """Gray frames of an image folder by index (the `evaluate --images` case)."""
 
-    def __init__(self, images: Sequence[Path]) -> None:
+    def __init__(self, images: Sequence[Path], max_pixels: int = DEFAULT_MAX_PIXELS) -> None:
         self.images = list(images)
+        self.max_pixels = max_pixels
 
     def __call__(self, indices: Sequence[int]) -> Iterator[tuple[int, GrayImage]]:
         for index in sorted(set(indices)):
-            gray = cv2.imread(str(self.images[index]), cv2.IMREAD_GRAYSCALE)
-            if gray is None:
-                raise LookupError(f"{self.images[index]}: cannot decode image")
-            yield index, np.ascontiguousarray(gray, dtype=np.uint8)
+            yield index, read_gray_file(self.images[index], self.max_pixels)

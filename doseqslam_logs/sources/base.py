@@ -16,6 +16,16 @@ SQLITE_MAGIC = b"SQLite format 3\x00"
 
 
 @dataclass(frozen=True)
+class Promise:
+    """How many messages of a topic the log's own bookkeeping (MCAP Statistics record, ROS 1
+    bag index, rosbag2 metadata.yaml) says it holds, written when the recording ended: a run
+    that finds fewer has lost some, and says so."""
+
+    count: int
+    origin: str  # e.g. "the Statistics record"
+
+
+@dataclass(frozen=True)
 class ChannelInfo:
     """One topic of a log, as `info` lists it."""
 
@@ -81,6 +91,15 @@ class Source(Protocol):
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
         """Every message of `topic` (poses, camera info: the other channels a run reads),
         decoded. SourceError while iterating when the log or a message cannot be read."""
+        ...
+
+    def promised_messages(self, topic: str) -> Promise | None:
+        """The messages of `topic` the log's index or statistics promise (None: no such
+        record, or one that counts the data it was read from)."""
+        ...
+
+    def unattributed_messages(self) -> int:
+        """Messages that belong to no topic the log declares (they cannot be read)."""
         ...
 
     def close(self) -> None: ...

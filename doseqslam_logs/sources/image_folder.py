@@ -11,6 +11,8 @@ import numpy as np
 
 from ..errors import SourceError
 from .frame import Frame
+from .image_header import DEFAULT_MAX_PIXELS, claimed_size
+from .images import Gray, captured_stderr, check_pixel_cap
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff"}
 
@@ -41,16 +43,40 @@ def folder_time_ns(index: int, fps: float) -> int:
     return round(index * 1e9 / fps)
 
 
-def folder_frames(folder: Path, fps: float) -> Iterator[Frame]:
+def read_gray_file(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> Gray:
+    """One image file as a gray image, its size checked from its header before decoding.
+
+    Raises SourceError when it cannot be read or decoded, or its header cannot be read;
+    ImageDecodeError ("too large") when it claims more than `max_pixels` pixels. A folder's
+    frames are numbered by position, so an image cannot be skipped: either refuses the run.
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    size = claimed_size(data)
+    if size is None:
+        raise SourceError(
+            f"{path}: cannot decode image (no PNG, JPEG, BMP, TIFF, WebP or PNM header)"
+        )
+    check_pixel_cap(size, max_pixels, str(path))
+    with captured_stderr():  # OpenCV's own "[ERROR:0@...]" lines, e.g. for a truncated BMP
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise SourceError(f"{path}: cannot decode image")
+    return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def folder_frames(
+    folder: Path, fps: float, max_pixels: int = DEFAULT_MAX_PIXELS
+) -> Iterator[Frame]:
     """Frames of the folder's images, frame i stamped i / fps seconds.
 
-    Raises SourceError for a non-positive rate or an image that cannot be read.
+    Raises SourceError for a non-positive rate or an image that cannot be read,
+    ImageDecodeError for one over `max_pixels`.
     """
     if not fps > 0:
         raise SourceError(f"--fps must be positive, got {fps}")
     for index, path in enumerate(list_images(folder)):
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise SourceError(f"{path}: cannot decode image")
         stamp = folder_time_ns(index, fps)
-        yield Frame(index, stamp, stamp, None, np.ascontiguousarray(image, dtype=np.uint8))
+        yield Frame(index, stamp, stamp, None, read_gray_file(path, max_pixels))

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from doseqslam_logs.errors import ImageDecodeError
 from doseqslam_logs.sources.base import ImageKind, ImageMessage
+from doseqslam_logs.sources.image_header import DEFAULT_MAX_PIXELS, claimed_size
 
 Gray = npt.NDArray[np.uint8]
 
@@ -43,6 +44,7 @@ RAW_SIZE_MISMATCH = "raw size mismatch"
 CONVERSION_FAILED = "conversion failed"
 NOT_JPEG_OR_PNG = "not JPEG or PNG"
 CORRUPT_COMPRESSED = "corrupt compressed image"
+TOO_LARGE = "too large"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -140,20 +142,41 @@ RAW_ENCODINGS: dict[str, RawEncoding] = {
 # Decoding
 
 
-def decode_gray(msg: ImageMessage) -> Gray:
+def decode_gray(msg: ImageMessage, max_pixels: int = DEFAULT_MAX_PIXELS) -> Gray:
     """The message's pixels as a C-contiguous, writable 2-D uint8 gray image.
+
+    An image whose header (raw: width and height; compressed: `claimed_size`) claims more
+    than `max_pixels` pixels is refused before anything is decoded or allocated.
 
     Raises:
         ImageDecodeError: the message could not be deserialized (`msg.decode_error`), the raw
             encoding is unknown, width/height/step/data length do not fit together, or the
-            compressed data is empty, neither JPEG nor PNG, or fails to decode.
+            compressed data is empty, neither JPEG nor PNG, or fails to decode; problem
+            TOO_LARGE when the header claims more than `max_pixels`.
     """
     if msg.decode_error is not None:
         raise ImageDecodeError(msg.decode_error, UNDESERIALIZABLE)
+    check_pixel_cap(_claimed(msg), max_pixels, _where(msg))
     gray = _decode_compressed(msg) if msg.kind == "compressed" else _decode_raw(msg)
     out = np.ascontiguousarray(gray, dtype=np.uint8)
     # A view on the message bytes is read-only; callers may want to modify the image in place.
     return out if out.flags.writeable else out.copy()
+
+
+def check_pixel_cap(size: tuple[int, int] | None, max_pixels: int, where: str) -> None:
+    """Raises ImageDecodeError (TOO_LARGE) when `size` (width, height) exceeds the cap."""
+    if size is not None and size[0] * size[1] > max_pixels:
+        raise ImageDecodeError(
+            f"{where}: its header claims {size[0]}x{size[1]} = {size[0] * size[1]} pixels, "
+            f"more than --max-pixels {max_pixels}; refused without decoding",
+            TOO_LARGE,
+        )
+
+
+def _claimed(msg: ImageMessage) -> tuple[int, int] | None:
+    if msg.kind == "compressed":
+        return claimed_size(msg.data)
+    return max(msg.width, 0), max(msg.height, 0)
 
 
 def _where(msg: ImageMessage) -> str:
@@ -232,7 +255,7 @@ def _stderr_sink() -> Any:
 
 
 @contextlib.contextmanager
-def _captured_stderr() -> Iterator[list[str]]:
+def captured_stderr() -> Iterator[list[str]]:
     """Redirect file descriptor 2 into a temporary file; yields a list that receives the text
     written meanwhile. Output of other threads in that window is captured too (the decode
     is short, and nothing else of ours writes to stderr while it runs). Without a usable fd 2
@@ -270,7 +293,7 @@ def _decode_compressed(msg: ImageMessage) -> Gray:
             f"{what} is neither JPEG nor PNG (starts with {msg.data[:8].hex(' ')})",
             NOT_JPEG_OR_PNG,
         )
-    with _captured_stderr() as output:
+    with captured_stderr() as output:
         try:
             gray = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
         except cv2.error as exc:

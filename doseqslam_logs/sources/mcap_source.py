@@ -32,7 +32,13 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.summary import Summary
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
-from doseqslam_logs.sources.base import MCAP_MAGIC, ChannelInfo, DecodedMessage, ImageMessage
+from doseqslam_logs.sources.base import (
+    MCAP_MAGIC,
+    ChannelInfo,
+    DecodedMessage,
+    ImageMessage,
+    Promise,
+)
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 from doseqslam_logs.sources.mcap_index import indexed_topic_messages
 
@@ -373,6 +379,22 @@ class McapSource:
                 ) from exc
             self._channels = _group_by_topic(stats)
         return list(self._channels)
+
+    def promised_messages(self, topic: str) -> Promise | None:
+        """The count of the Statistics record for `topic` (None without one: cut short, no
+        summary). A record the data section no longer holds (e.g. its opcode flipped, which
+        a reader must skip as an unknown record) is missing against it."""
+        statistics = self._summary.statistics if self._summary is not None else None
+        if statistics is None:
+            return None
+        assert self._summary is not None
+        ids = [cid for cid, channel in self._summary.channels.items() if channel.topic == topic]
+        count = sum(statistics.channel_message_counts.get(cid, 0) for cid in ids)
+        return Promise(count, "the Statistics record")
+
+    def unattributed_messages(self) -> int:
+        """0: a message of an undeclared channel makes the file unreadable (SourceError)."""
+        return 0
 
     def image_messages(
         self, topic: str, start_ns: int | None = None, end_ns: int | None = None

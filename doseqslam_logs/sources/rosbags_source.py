@@ -13,7 +13,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
-from doseqslam_logs.sources.base import ROS1_MAGIC, ChannelInfo, DecodedMessage, ImageMessage
+from doseqslam_logs.sources.base import (
+    ROS1_MAGIC,
+    ChannelInfo,
+    DecodedMessage,
+    ImageMessage,
+    Promise,
+)
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 
 if TYPE_CHECKING:
@@ -123,6 +129,21 @@ class RosbagsSource:
         for connection in self._reader.connections:
             by_topic.setdefault(connection.topic, []).append(connection)
         return [_topic_info(topic, group) for topic, group in by_topic.items()]
+
+    def promised_messages(self, topic: str) -> Promise | None:
+        """The count of the ROS 1 bag's index or of the rosbag2 folder's metadata.yaml; None for
+        a bare .db3, whose counts rosbags takes from the rows themselves."""
+        if self.path.is_file() and self.path.suffix != ".bag":
+            return None
+        origin = "the bag's index" if self.path.suffix == ".bag" else "metadata.yaml"
+        counts = [c.msgcount for c in self._reader.connections if c.topic == topic]
+        return Promise(sum(counts), origin)
+
+    def unattributed_messages(self) -> int:
+        """Rows of a .db3 whose topic id names no topic: rosbags reads messages by topic, so
+        they are never read; the file's row count minus the topics' counts."""
+        declared = sum(c.msgcount for c in self._reader.connections)
+        return max(0, self._reader.message_count - declared)
 
     def image_messages(
         self, topic: str, start_ns: int | None = None, end_ns: int | None = None
