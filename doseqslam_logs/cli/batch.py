@@ -12,7 +12,7 @@ from ..batch.engine import ENGINES, EngineSettings
 from ..batch.manifest import MANIFEST_NAME
 from ..batch.report import ConsoleDisplay, summary_table
 from ..batch.runner import plan_batch, run_batch
-from ..errors import ExitCode, UsageError
+from ..errors import ExitCode, OutputError, UsageError
 from .annotate import add_run_options, annotate_options_from_args, positive_int
 from .params_args import run_parameters
 
@@ -61,9 +61,16 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     parser.set_defaults(run=run)
 
 
+def _check_outdir(outdir: Path) -> None:
+    """OUTDIR is a folder, or does not exist yet (it is created): anything else is exit 6."""
+    if outdir.exists() and not outdir.is_dir():
+        raise OutputError(f"{outdir}: the output folder exists and is not a folder")
+
+
 def run(args: argparse.Namespace) -> int:
     if args.address is not None and args.engine != "ray":
         raise UsageError("--address is the address of a Ray cluster: use it with --engine ray")
+    _check_outdir(args.output)
     params = run_parameters(args)  # as annotate: the same defaults, the same outputs
     # Per-log frame-preparing threads: 2 as in annotate; the engines use 1 when logs run in
     # parallel (the cores are already busy).

@@ -24,7 +24,7 @@ from ..errors import (
     SourceError,
     TimestampError,
 )
-from ..sinks.atomic import scratch_file
+from ..sinks.atomic import check_output_path, scratch_file
 from ..sinks.mcap_writer import (
     Annotations,
     WriteSummary,
@@ -261,7 +261,8 @@ def annotate_log(
     options = options or AnnotateOptions()
     if params is None:
         params = command_detector_parameters(options.verification)
-    if log.exists():  # before the detector runs, not after
+    check_output_path(output)  # before the detector runs, not after
+    if log.exists():
         refuse_same_file(log, output)
     if not (options.recover and is_mcap_file(log)):
         return _annotate(log, log, output, params, options, progress, expected, None)
@@ -284,6 +285,15 @@ def annotate_log(
             # Messages about the recovered copy are about the log, for whoever reads them.
             exc.args = (str(exc).replace(str(repaired), str(log)), *exc.args[1:])
             raise
+
+
+def _window(options: AnnotateOptions) -> str:
+    """' in the log-time window ...' of -S/-E, or '' without them."""
+    if options.start_ns is None and options.end_ns is None:
+        return ""
+    start = "its start" if options.start_ns is None else str(options.start_ns)
+    end = "its end" if options.end_ns is None else str(options.end_ns)
+    return f" with log time in [{start}, {end}) (-S/-E)"
 
 
 def _annotate(
@@ -321,7 +331,11 @@ def _annotate(
             f"{log}: nothing to recover on {topic}: no complete image message "
             f"({recovery.describe()})"
         )
-    if counts.used == 0 and counts.messages > 0:
+    if counts.messages == 0:
+        raise ImageDecodeError(
+            f"{log}: no image message of {topic}{_window(options)}: nothing to annotate", "no image"
+        )
+    if counts.used == 0:
         reasons = ", ".join(f"{n} {why}" for why, n in counts.skipped_by_reason().items())
         first = next(iter(counts.first_skip.values()), "")
         raise ImageDecodeError(

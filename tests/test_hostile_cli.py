@@ -1,0 +1,251 @@
+"""Issue #21: outputs that are not ours, crashes and Python's messages become one-line errors.
+
+Every hostile input is built here, in tmp_path, from the 12 RTAB-Map frames of the bad-input
+corpus (tests/make_bad_inputs.py). Each run goes through the command line in-process and checks
+the promise of docs/robustness.md: the documented exit code, one `doseqslam-logs: error:` line,
+no traceback, inputs unchanged, and only regular files ever written under an output name.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import stat
+import sys
+from pathlib import Path
+
+import pytest
+
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.errors import ExitCode
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import make_bad_inputs
+
+pytestmark = pytest.mark.slow  # the pipeline runs
+
+OUTPUT_ERROR, USAGE = ExitCode.OUTPUT_ERROR, ExitCode.USAGE
+
+
+@pytest.fixture(scope="module")
+def jpegs(shared_data: Path) -> list[bytes]:
+    return make_bad_inputs.rtabmap_jpegs(shared_data)
+
+
+@pytest.fixture(scope="module")
+def good_log(jpegs: list[bytes], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("logs") / "good.mcap"
+    return make_bad_inputs.write_log(path, make_bad_inputs.good_items(jpegs))
+
+
+@pytest.fixture(scope="module")
+def annotated(good_log: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("annotated") / "out.mcap"
+    assert main(["annotate", str(good_log), "-o", str(out), "--no-verify"]) == 0
+    return out
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def cli(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
+    code = main([str(arg) for arg in args])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def assert_one_error(err: str, *fragments: str) -> None:
+    lines = [line for line in err.splitlines() if "warning" not in line]
+    assert len(lines) == 1 and lines[0].startswith("doseqslam-logs: error: "), err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in lines[0], err
+
+
+def assert_fails(
+    capsys: pytest.CaptureFixture[str], code: int, fragment: str, *args: str | Path
+) -> None:
+    status, _, err = cli(capsys, *args)
+    assert status == code, err
+    assert_one_error(err, fragment)
+
+
+def leftovers(folder: Path) -> list[str]:
+    return [p.name for p in folder.iterdir() if p.name.startswith(".")]
+
+
+# --- 1. outputs are only ever regular files ---------------------------------------------------
+
+
+def _fifo(path: Path) -> Path:
+    os.mkfifo(path)
+    return path
+
+
+def _socket(path: Path) -> Path:
+    import socket
+
+    server = socket.socket(socket.AF_UNIX)
+    server.bind(str(path))
+    server.close()
+    return path
+
+
+def _directory(path: Path) -> Path:
+    path.mkdir()
+    return path
+
+
+def _link_to_dev_null(path: Path) -> Path:
+    path.symlink_to("/dev/null")
+    return path
+
+
+NOT_OURS = {
+    "a FIFO": _fifo,
+    "a socket": _socket,
+    "a directory": _directory,
+    "a character device": _link_to_dev_null,
+}
+
+
+def _writing_commands(log: Path, annotated: Path, out: Path) -> dict[str, list[str | Path]]:
+    return {
+        "annotate": ["annotate", log, "-o", out, "--no-verify"],
+        "annotate --recover": ["annotate", log, "-o", out, "--no-verify", "--recover"],
+        "export": ["export", annotated, "--format", "csv", "-o", out],
+    }
+
+
+@pytest.mark.parametrize("kind", NOT_OURS)
+@pytest.mark.parametrize("command", ["annotate", "annotate --recover", "export"])
+def test_an_existing_non_regular_output_is_refused_and_left_alone(
+    kind: str,
+    command: str,
+    good_log: Path,
+    annotated: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = NOT_OURS[kind](tmp_path / "out.mcap")
+    before = os.lstat(out)
+    args = _writing_commands(good_log, annotated, out)[command]
+    assert_fails(capsys, OUTPUT_ERROR, f"the output exists and is {kind}: refusing", *args)
+    after = os.lstat(out)
+    assert (after.st_mode, after.st_ino) == (before.st_mode, before.st_ino)
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+    assert leftovers(tmp_path) == []
+
+
+def test_a_symlink_to_a_regular_file_is_replaced_and_its_target_untouched(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    target = tmp_path / "target.csv"
+    target.write_text("keep me\n")
+    link = tmp_path / "out.csv"
+    link.symlink_to(target)
+    status, _, err = cli(capsys, "export", annotated, "--format", "csv", "-o", link)
+    assert status == 0, err
+    assert not link.is_symlink() and link.read_text().startswith("query")
+    assert target.read_text() == "keep me\n"
+
+
+def test_a_batch_output_that_is_not_ours_fails_that_log_only(
+    good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "a.mcap").write_bytes(good_log.read_bytes())
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    os.mkfifo(outdir / "a.annotated.mcap")
+    status, _, err = cli(capsys, "batch", logs, "-o", outdir, "--no-verify", "-j", "1")
+    assert status == ExitCode.DIFFERENT, err
+    assert stat.S_ISFIFO(os.lstat(outdir / "a.annotated.mcap").st_mode)
+    assert "is a FIFO: refusing to replace it" in (outdir / "manifest.jsonl").read_text()
+
+
+def test_batch_into_an_existing_file_is_an_output_error(
+    good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    outdir = tmp_path / "out"
+    outdir.write_text("not a folder")
+    assert_fails(capsys, OUTPUT_ERROR, "is not a folder", "batch", good_log, "-o", outdir)
+    assert outdir.read_text() == "not a folder"
+
+
+def test_export_onto_its_input_is_an_output_error_as_for_annotate(
+    good_log: Path, annotated: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    digest = sha256(annotated)
+    export = ("export", annotated, "--format", "csv", "-o", annotated)
+    assert_fails(capsys, OUTPUT_ERROR, "the output would replace the input", *export)
+    annotate = ("annotate", good_log, "-o", good_log)
+    assert_fails(capsys, OUTPUT_ERROR, "the output would overwrite the input", *annotate)
+    assert sha256(annotated) == digest
+
+
+# --- 2. crashes become one-line errors --------------------------------------------------------
+
+
+def test_an_output_name_longer_than_name_max_is_an_output_error(
+    good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / ("a" * 256)
+    assert_fails(
+        capsys,
+        OUTPUT_ERROR,
+        "its name is 256 bytes long, the limit is 255",
+        *("annotate", good_log, "-o", out, "--no-verify"),
+    )
+
+
+def test_a_legal_long_output_name_is_written(
+    good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / ("b" * 245 + ".mcap")
+    status, _, err = cli(capsys, "annotate", good_log, "-o", out, "--no-verify")
+    assert status == 0, err
+    assert out.is_file() and leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    ("value", "fragment"),
+    [
+        ("2023-13-45T99:99Z", "not a time: '2023-13-45T99:99Z'"),
+        ("2023-13-45T10:00:00Z", "month must be in 1..12"),
+        ("1969-12-31T23:59:59Z", "not a log time"),
+        (str(2**64), "not a log time"),
+    ],
+)
+def test_a_bad_start_time_is_a_usage_error(
+    value: str, fragment: str, good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["annotate", str(good_log), "-o", str(tmp_path / "o.mcap"), "-S", value])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == USAGE and fragment in err and "Traceback" not in err
+
+
+# --- 4. smaller inconsistencies ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("window", "fragment"),
+    [
+        (("-S", "2100-01-01T00:00:00Z"), "with log time in [4102444800000000000, its end)"),
+        (("-E", "1"), "with log time in [its start, 1)"),
+    ],
+)
+def test_a_window_without_images_is_an_error_not_an_empty_output(
+    window: tuple[str, str],
+    fragment: str,
+    good_log: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = tmp_path / "o.mcap"
+    args = ("annotate", good_log, "-o", out, "--no-verify", *window)
+    assert_fails(capsys, ExitCode.BAD_IMAGE, fragment, *args)
+    assert not out.exists()
