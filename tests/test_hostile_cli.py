@@ -14,6 +14,7 @@ import stat
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from doseqslam_logs.cli.main import main
@@ -249,3 +250,168 @@ def test_a_window_without_images_is_an_error_not_an_empty_output(
     args = ("annotate", good_log, "-o", out, "--no-verify", *window)
     assert_fails(capsys, ExitCode.BAD_IMAGE, fragment, *args)
     assert not out.exists()
+
+
+# --- timestamps no clock can have -------------------------------------------------------------
+
+
+def _raw_log(
+    jpegs: list[bytes],
+    path: Path,
+    headers: dict[int, tuple[int, int]] | None = None,
+    log_times: dict[int, int] | None = None,
+) -> Path:
+    """The 12 frames as mono8 sensor_msgs/Image; frame k gets header stamp headers[k] =
+    (sec, nanosec) and log time log_times[k] when given."""
+    from rosbags.typesys import Stores, get_typestore
+
+    types = get_typestore(Stores.ROS2_HUMBLE).types
+    headers, log_times = headers or {}, log_times or {}
+    items: list[make_bad_inputs.Item] = []
+    for i, data in enumerate(jpegs):
+        frame = make_bad_inputs.mono8_frame(data, make_bad_inputs.stamp(i))
+        log_time = log_times.get(i, frame.stamp_ns + make_bad_inputs.LATENCY_NS)
+        overrides = {}
+        if i in headers:
+            stamp = types["builtin_interfaces/msg/Time"](sec=headers[i][0], nanosec=headers[i][1])
+            overrides["header"] = types["std_msgs/msg/Header"](stamp=stamp, frame_id="camera")
+        items.append((frame, log_time, overrides))
+    return make_bad_inputs.write_log(path, items)
+
+
+@pytest.mark.parametrize(
+    "header",
+    [
+        (-5, 0),  # a legal int32: before 1970, no log time can be that
+        (1_700_000_002, 4_000_000_000),  # nanosec >= 1e9: not +4 s
+        (2**31 - 1, 999_999_999),  # fine
+    ],
+    ids=["negative seconds", "nanosec 4e9", "latest"],
+)
+def test_an_invalid_header_stamp_falls_back_to_the_log_time_counted(
+    header: tuple[int, int],
+    jpegs: list[bytes],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    log = _raw_log(jpegs, tmp_path / "log.mcap", headers={5: header})
+    status, out, err = cli(capsys, "annotate", log, "-o", tmp_path / "o.mcap", "--no-verify")
+    assert status == 0, err
+    if header[0] == 2**31 - 1:  # valid: a jump to 2038 and back, bridged
+        assert "0 skipped frames" in out and "2 camera clock jumps bridged" in out
+        return
+    assert "12 frames of /camera/image_raw" in out and "0 skipped frames" in out
+    assert "1 frames without header stamp used the log time" in out
+
+
+@pytest.mark.parametrize("log_time", [2**64 - 1, 2**63 - 1, 2**31 * 10**9])
+@pytest.mark.parametrize("frame", [5, 11])
+def test_a_log_time_past_2038_skips_that_frame_counted(
+    log_time: int,
+    frame: int,
+    jpegs: list[bytes],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    log = _raw_log(jpegs, tmp_path / "log.mcap", log_times={frame: log_time})
+    digest = sha256(log)
+    out_path = tmp_path / "o.mcap"
+    status, out, err = cli(capsys, "annotate", log, "-o", out_path, "--no-verify")
+    assert status == 0, err
+    assert "11 frames" in out and "1 skipped frames (1 log time out of range)" in out
+    assert f"at log time {log_time}: later than 2147483647999999999" in err
+    assert sha256(log) == digest and out_path.is_file()
+    fail = ("annotate", log, "-o", out_path, "--no-verify", "--on-error", "fail")
+    assert_fails(capsys, ExitCode.BAD_IMAGE, "log time out of range", *fail)
+
+
+# --- parameters and options that are not numbers ----------------------------------------------
+
+
+FLOAT_PARAMETERS = [
+    "kappa_s",
+    "velocity_min",
+    "velocity_max",
+    "velocity_step",
+    "threshold",
+    "match_ratio",
+]
+FLOAT_VERIFICATION = [
+    "ratio",
+    "ransac_threshold_px",
+    "confidence",
+    "query_interval_s",
+    "max_rotation_deg",
+]
+
+
+def test_the_lists_hold_every_float_parameter() -> None:
+    from dataclasses import fields
+
+    from doseqslam_logs.detector.params import Parameters
+    from doseqslam_logs.verification.params import VerificationParameters
+
+    def floats(cls: type) -> list[str]:
+        return [f.name for f in fields(cls) if isinstance(f.default, float)]
+
+    assert floats(Parameters) == FLOAT_PARAMETERS
+    assert floats(VerificationParameters) == FLOAT_VERIFICATION
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "+inf"])
+@pytest.mark.parametrize(
+    "option", [("--set", n) for n in FLOAT_PARAMETERS] + [("--vset", n) for n in FLOAT_VERIFICATION]
+)
+def test_a_non_finite_parameter_is_a_usage_error(
+    option: tuple[str, str],
+    value: str,
+    good_log: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    flag, name = option
+    args = ("annotate", good_log, "-o", tmp_path / "o.mcap", flag, f"{name}={value}")
+    assert_fails(capsys, USAGE, f"{name} must be a finite number, got", *args)
+
+
+def test_a_config_file_that_is_not_text_is_a_usage_error(
+    good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "params.toml"
+    config.write_bytes(b"kappa_s = 1\n\xff\xfe\x00binary")
+    args = ("annotate", good_log, "-o", tmp_path / "o.mcap", "--config", config)
+    assert_fails(capsys, USAGE, "not a parameters file: not UTF-8 text (byte 12", *args)
+
+
+@pytest.mark.parametrize("fps", ["1e-300", "inf", "nan", "0", "-2", "2e9", "two"])
+def test_a_frame_rate_no_folder_can_have_is_a_usage_error(
+    fps: str, shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    images = shared_data / "rtabmap_samples_loop" / "images"
+    gt = shared_data / "rtabmap_samples_loop" / "samples_GT.bmp"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["evaluate", "--images", str(images), "--fps", fps, "--gt", str(gt)])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == USAGE and "Traceback" not in err
+    assert f"argument --fps: must be a frame rate from 1e-06 to 1e+09, got '{fps}'" in err
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+@pytest.mark.parametrize("suffix", [".npy", ".mat"])
+def test_a_ground_truth_with_nan_or_inf_is_refused(
+    bad: float, suffix: str, annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import scipy.io
+    from scipy import sparse
+
+    matrix = np.zeros((12, 12))
+    matrix[:, :] = bad if np.isnan(bad) else 0.0
+    matrix[7, 2] = bad
+    gt = tmp_path / f"gt{suffix}"
+    if suffix == ".npy":
+        np.save(gt, matrix)
+    else:
+        scipy.io.savemat(gt, {"gt": sparse.csc_matrix(matrix)})
+    cells = 144 if np.isnan(bad) else 1
+    message = f"{cells} of {144 if suffix == '.npy' else cells} ground-truth cells are NaN"
+    assert_fails(capsys, USAGE, message, "evaluate", annotated, "--gt", gt)
