@@ -9,9 +9,13 @@ no traceback, inputs unchanged, and only regular files ever written under an out
 from __future__ import annotations
 
 import hashlib
+import io
 import os
+import re
 import stat
+import struct
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -415,3 +419,166 @@ def test_a_ground_truth_with_nan_or_inf_is_refused(
     cells = 144 if np.isnan(bad) else 1
     message = f"{cells} of {144 if suffix == '.npy' else cells} ground-truth cells are NaN"
     assert_fails(capsys, USAGE, message, "evaluate", annotated, "--gt", gt)
+
+
+# --- 3. damaged records: our words, not Python's ----------------------------------------------
+
+FOOTER_AT = -(8 + 29)  # the footer record (opcode, length, 20 bytes) before the closing magic
+
+
+def _records(data: bytes, start: int, end: int) -> Iterator[tuple[int, int, int]]:
+    """(opcode, offset, content length) of each record in data[start:end]."""
+    while start < end:
+        (length,) = struct.unpack_from("<Q", data, start + 1)
+        yield data[start], start, length
+        start += 9 + length
+
+
+def _summary_records(data: bytes) -> list[tuple[int, int, int]]:
+    footer = len(data) + FOOTER_AT
+    summary_start, offsets_start = struct.unpack_from("<QQ", data, footer + 9)
+    return list(_records(data, summary_start, offsets_start or footer))
+
+
+def chunk_index_shifted_by_7(good: bytes) -> bytes:
+    """Every chunk index points 7 bytes past its chunk: the reader parses the middle of one."""
+    data = bytearray(good)
+    for opcode, at, _ in _summary_records(good):
+        if opcode == 0x08:  # ChunkIndex: start time, end time, chunk start offset, ...
+            (offset,) = struct.unpack_from("<Q", data, at + 9 + 16)
+            struct.pack_into("<Q", data, at + 9 + 16, offset + 7)
+    return bytes(data)
+
+
+def chunk_index_cut_to_8_bytes(good: bytes) -> bytes:
+    """The first chunk index record holds 8 bytes of its 78 (the rest of the file follows)."""
+    data = bytearray(good)
+    _, at, length = next(r for r in _summary_records(good) if r[0] == 0x08)
+    struct.pack_into("<Q", data, at + 1, 8)
+    del data[at + 9 + 8 : at + 9 + length]
+    return bytes(data)
+
+
+def unchunked_message_shorter_than_its_header(good: Path) -> bytes:
+    """The log rewritten without chunks; its 6th message record says it is 10 bytes long,
+    less than a message's own 22-byte header."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    out = io.BytesIO()
+    writer = Writer(out, use_chunking=False)
+    writer.start("ros2", "test")
+    channels: dict[int, int] = {}
+    with good.open("rb") as stream:
+        for schema, channel, message in make_reader(stream).iter_messages():
+            if channel.id not in channels:
+                assert schema is not None
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+    writer.finish()
+    data = bytearray(out.getvalue())
+    messages = [at for opcode, at, _ in _records(data, 8, len(data) + FOOTER_AT) if opcode == 5]
+    struct.pack_into("<Q", data, messages[5] + 1, 10)
+    return bytes(data)
+
+
+@pytest.mark.parametrize(
+    ("damage", "words"),
+    [
+        ("chunk index shifted by 7", "a record holds a name or text that is not UTF-8"),
+        ("chunk index cut to 8 bytes", "a record is shorter than its fields"),
+        ("message shorter than its header", "a record's length or offset is impossible"),
+    ],
+)
+def test_damaged_records_are_described_in_our_words(
+    damage: str, words: str, good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    good = good_log.read_bytes()
+    data = {
+        "chunk index shifted by 7": lambda: chunk_index_shifted_by_7(good),
+        "chunk index cut to 8 bytes": lambda: chunk_index_cut_to_8_bytes(good),
+        "message shorter than its header": lambda: unchunked_message_shorter_than_its_header(
+            good_log
+        ),
+    }[damage]()
+    log = tmp_path / "damaged.mcap"
+    log.write_bytes(data)
+    for args in (("info", log), ("annotate", log, "-o", tmp_path / "o.mcap", "--no-verify")):
+        status, _, err = cli(capsys, *args)
+        assert status == ExitCode.UNREADABLE_INPUT, err
+        assert_one_error(err, f"({words}: the file is corrupt)")
+        assert not re.search(r"[A-Za-z]+Error\b|unpack|codec|read length", err), err
+    assert log.read_bytes() == data and not (tmp_path / "o.mcap").exists()
+
+
+def _truncated_bmp(shared_data: Path, path: Path) -> Path:
+    import cv2
+
+    image = cv2.imread(str(shared_data / "rtabmap_samples_loop" / "images" / "1.jpg"))
+    ok, encoded = cv2.imencode(".bmp", image)
+    assert ok
+    path.write_bytes(encoded.tobytes()[: encoded.size // 2])
+    return path
+
+
+def test_opencv_prints_nothing_of_its_own_for_a_truncated_bmp(
+    shared_data: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in ("1.jpg", "2.jpg"):
+        (images / name).write_bytes(
+            (shared_data / "rtabmap_samples_loop" / "images" / name).read_bytes()
+        )
+    _truncated_bmp(shared_data, images / "3.bmp")
+    np.save(tmp_path / "gt.npy", np.zeros((3, 3)))
+    gt_bmp = _truncated_bmp(shared_data, tmp_path / "gt.bmp")
+    runs = [
+        (
+            ["--gt", str(tmp_path / "gt.npy")],
+            ExitCode.UNREADABLE_INPUT,
+            "3.bmp: cannot decode image",
+        ),
+        (["--gt", str(gt_bmp)], USAGE, "gt.bmp: not a readable image"),
+    ]
+    for gt, code, message in runs:
+        capfd.readouterr()
+        status = main(["evaluate", "--images", str(images), "--fps", "1", "--no-verify", *gt])
+        err = capfd.readouterr().err
+        assert status == code, err
+        assert_one_error(err, message)
+        assert "[ERROR" not in err and "OpenCV" not in err, err
+
+
+def test_a_non_utf8_input_name_is_recorded_escaped(
+    good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mcap.reader import make_reader
+
+    log = tmp_path / os.fsdecode(b"caf\xe9.mcap")  # a Latin-1 name
+    log.write_bytes(good_log.read_bytes())
+    out = tmp_path / "o.mcap"
+    status, _, err = cli(capsys, "annotate", log, "-o", out, "--no-verify")
+    assert status == 0, err
+    with out.open("rb") as stream:
+        records = [m for m in make_reader(stream).iter_metadata() if m.name == "doseqslam"]
+    assert records[0].metadata["source_file"] == "caf\\xe9.mcap"
+
+
+def test_a_ros1_bag_named_mcap_is_read_as_ros1(
+    jpegs: list[bytes], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = make_bad_inputs.write_log(tmp_path / "log.bag", make_bad_inputs.good_items(jpegs), "bag")
+    named_mcap = tmp_path / "log.mcap"
+    named_mcap.write_bytes(bag.read_bytes())
+    lines = []
+    for log in (bag, named_mcap):
+        status, out, err = cli(capsys, "annotate", log, "-o", tmp_path / "o.mcap", "--no-verify")
+        assert status == 0, err
+        lines.append(out.split(": ", 1)[1].split(", 0.")[0])  # without the path and timing
+    assert lines[0] == lines[1] and lines[0].startswith("12 frames of /camera/image/compressed")

@@ -17,6 +17,7 @@ from scipy import sparse
 from scipy.io.matlab import MatReadError
 
 from ..errors import GroundTruthError, UsageError
+from ..sources import opencv_quiet  # noqa: F401 - OpenCV's log off, once
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]

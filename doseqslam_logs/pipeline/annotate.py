@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -196,6 +197,12 @@ class _TimesRecorder:
         return FrameTimes.from_pairs(self.pairs)
 
 
+def printable_name(path: Path) -> str:
+    """`path`'s name as UTF-8 text: bytes that are not UTF-8 (a name from another locale)
+    are written as \\xNN, since MCAP strings must be UTF-8."""
+    return os.fsencode(path.name).decode("utf-8", "backslashreplace")
+
+
 def run_metadata(
     params: Parameters,
     result: ReplayResult,
@@ -213,7 +220,7 @@ def run_metadata(
         parameters_json=params.canonical_json(),
         parameters_hash=params.hash,
         feature_detector=result.feature_detector,
-        source_file=log.name,
+        source_file=printable_name(log),
         source_sha256=sha256,
         image_topic=topic,
         time_source=options.time_source,

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from ..errors import SourceError, UsageError
+from . import opencv_quiet  # noqa: F401 - OpenCV's log off, once
 from .frame import Frame
 
 # Frame rates a folder can be stamped at: from one frame every 11.6 days (10,000 frames then

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from doseqslam_logs.errors import ImageDecodeError
+from doseqslam_logs.sources import opencv_quiet  # noqa: F401 - OpenCV's log off, once
 from doseqslam_logs.sources.base import MAX_TIME_NS, ImageKind, ImageMessage
 
 Gray = npt.NDArray[np.uint8]
