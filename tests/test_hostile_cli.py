@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import os
 import re
 import stat
@@ -582,3 +583,55 @@ def test_a_ros1_bag_named_mcap_is_read_as_ros1(
         assert status == 0, err
         lines.append(out.split(": ", 1)[1].split(", 0.")[0])  # without the path and timing
     assert lines[0] == lines[1] and lines[0].startswith("12 frames of /camera/image/compressed")
+
+
+def _without_metadata_index(annotated: Path, target: Path) -> Path:
+    """The annotated log with a summary that has no MetadataIndex (and no summary offsets),
+    as a tool that rewrites summaries may leave it: the metadata record is in the data only."""
+    data = annotated.read_bytes()
+    summary_start = struct.unpack_from("<Q", data, len(data) + FOOTER_AT + 9)[0]
+    kept = b"".join(
+        data[at : at + 9 + length]
+        for opcode, at, length in _summary_records(data)
+        if opcode != 0x0D  # MetadataIndex
+    )
+    footer = struct.pack("<BQQQI", 0x02, 20, summary_start, 0, 0)  # CRC 0: not computed
+    target.write_bytes(data[:summary_start] + kept + footer + data[-8:])
+    return target
+
+
+def test_evaluate_reads_an_annotated_log_whose_summary_lacks_the_metadata_index(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    np.save(tmp_path / "gt.npy", np.eye(12))
+    rewritten = _without_metadata_index(annotated, tmp_path / "rewritten.mcap")
+    reports = []
+    for log in (annotated, rewritten):
+        status, out, err = cli(capsys, "evaluate", log, "--gt", tmp_path / "gt.npy", "--json")
+        assert status == 0, err
+        reports.append({**json.loads(out), "log": None})
+    assert reports[0] == reports[1] and reports[0]["tool_version"]
+
+
+def test_a_truncated_annotated_log_says_so(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(annotated.read_bytes()[:-30])
+    args = ("export", cut, "--format", "csv")
+    assert_fails(capsys, ExitCode.UNREADABLE_INPUT, "truncated MCAP file: it ends without", *args)
+
+
+def test_evaluate_plot_refuses_a_picture_name_that_is_not_a_regular_file(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pytest.importorskip("matplotlib")
+    np.save(tmp_path / "gt.npy", np.eye(12))
+    pictures = tmp_path / "pictures"
+    pictures.mkdir()
+    os.mkfifo(pictures / "difference_matrix.png")
+    args = ("evaluate", annotated, "--gt", tmp_path / "gt.npy", "--plot", pictures)
+    assert_fails(
+        capsys, OUTPUT_ERROR, "difference_matrix.png: the output exists and is a FIFO", *args
+    )
+    assert sorted(p.name for p in pictures.iterdir()) == ["difference_matrix.png"]
