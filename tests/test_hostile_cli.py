@@ -635,3 +635,14 @@ def test_evaluate_plot_refuses_a_picture_name_that_is_not_a_regular_file(
         capsys, OUTPUT_ERROR, "difference_matrix.png: the output exists and is a FIFO", *args
     )
     assert sorted(p.name for p in pictures.iterdir()) == ["difference_matrix.png"]
+
+
+def test_a_batch_manifest_that_is_a_fifo_is_refused_not_waited_on(
+    good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    os.mkfifo(outdir / "manifest.jsonl")  # opening it would block until someone reads
+    args = ("batch", good_log, "-o", outdir, "--no-verify")
+    assert_fails(capsys, OUTPUT_ERROR, "manifest.jsonl: the output exists and is a FIFO", *args)
+    assert sorted(p.name for p in outdir.iterdir()) == ["manifest.jsonl"]
