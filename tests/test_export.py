@@ -329,7 +329,7 @@ def test_an_output_that_would_replace_the_input_is_refused(
     annotated: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     status, _, err = export(capsys, str(annotated), "--format", "csv", "-o", str(annotated))
-    assert status == 2 and "would replace the input" in err
+    assert status == 6 and "would replace the input" in err
 
 
 def _optical_rotation_for_body_yaw(degrees: float) -> list[float]:

@@ -293,11 +293,15 @@ def test_directory_without_metadata(shared_data: Path) -> None:
         open_source(shared_data / "lip6_outdoor")
 
 
-def test_ros1_bag_needs_its_extension(shared_data: Path, tmp_path: Path) -> None:
-    renamed = tmp_path / "example.rosbag"
-    renamed.symlink_to(shared_data / TURTLESIM / "example.bag")
-    with pytest.raises(SourceError, match=r"\.bag extension"):
-        open_source(renamed)
+def test_a_ros1_bag_is_told_by_its_content_not_its_name(shared_data: Path, tmp_path: Path) -> None:
+    original = shared_data / TURTLESIM / "example.bag"
+    with open_source(original) as source:
+        expected = source.channels()
+    for name in ("example.rosbag", "example.mcap"):  # issue #21: .mcap was read as rosbag2
+        renamed = tmp_path / name
+        renamed.symlink_to(original)
+        with open_source(renamed) as source:
+            assert source.channels() == expected
 
 
 # --- small MCAP files written here --------------------------------------------------------------

@@ -7,19 +7,22 @@ version did not write take the records' "not recorded" values.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import contextlib
+import struct
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import numpy.typing as npt
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.records import Schema
+from mcap.records import Attachment, Metadata, Schema
+from mcap.stream_reader import StreamReader
 
 from ..errors import SourceError
-from ..sources.mcap_source import DESERIALIZERS
+from ..sources.mcap_source import DESERIALIZERS, describe_read_error, is_complete
 from .records import (
     FRAME_TIMES_ATTACHMENT,
     LOOP_CLOSURE,
@@ -89,6 +92,40 @@ def plain(value: Any) -> Any:
     return {name: plain(getattr(value, name)) for name in names}
 
 
+def _records_of_ours(
+    metadata: Iterable[object], attachments: Iterable[object]
+) -> tuple[dict[str, str], FrameTimes | None]:
+    """Our metadata entries ({} without the record) and frame times (None without them)."""
+    entries = next(
+        (dict(m.metadata) for m in metadata if isinstance(m, Metadata) and m.name == METADATA_NAME),
+        {},
+    )
+    frame_times = next(
+        (
+            FrameTimes.from_json(a.data)
+            for a in attachments
+            if isinstance(a, Attachment) and a.name == FRAME_TIMES_ATTACHMENT
+        ),
+        None,
+    )
+    return entries, frame_times
+
+
+def _metadata_and_attachments(stream: IO[bytes]) -> Iterator[Metadata | Attachment]:
+    """The Metadata and Attachment records of the file, read in one pass from its start."""
+    for record in StreamReader(stream).records:
+        if isinstance(record, (Metadata, Attachment)):
+            yield record
+
+
+def _problem(file: Path, exc: BaseException) -> str:
+    """What is wrong, in words: a file cut short says so."""
+    with contextlib.suppress(OSError), file.open("rb") as stream:
+        if not is_complete(stream):
+            return "truncated MCAP file: it ends without a footer (written or copied cut short?)"
+    return describe_read_error(exc)
+
+
 def _field_names(value: Any) -> list[str]:
     fields = getattr(value, "__dataclass_fields__", None)
     if fields is not None:
@@ -108,8 +145,6 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
     file = Path(path)
     closures: list[dict[str, Any]] = []
     sequences: list[dict[str, Any]] = []
-    entries: dict[str, str] = {}
-    frame_times: FrameTimes | None = None
     try:
         with file.open("rb") as stream:
             reader = make_reader(stream)
@@ -119,14 +154,17 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
                     decoders[schema.id] = _decoder(schema, channel.message_encoding)
                 decoded = plain(decoders[schema.id](message.data))
                 (closures if channel.topic == LOOP_CLOSURE.topic else sequences).append(decoded)
-            for record in reader.iter_metadata():
-                if record.name == METADATA_NAME:
-                    entries = dict(record.metadata)
-            for attachment in reader.iter_attachments():
-                if attachment.name == FRAME_TIMES_ATTACHMENT:
-                    frame_times = FrameTimes.from_json(attachment.data)
-    except (OSError, McapError, ValueError, KeyError) as exc:
-        raise SourceError(f"{path}: cannot read the annotations ({exc})") from exc
+            entries, frame_times = _records_of_ours(
+                reader.iter_metadata(), reader.iter_attachments()
+            )
+            if not entries:
+                # A summary without metadata index (rewritten by another tool): the record
+                # is still in the data section, so read it from there.
+                stream.seek(0)
+                records = list(_metadata_and_attachments(stream))
+                entries, frame_times = _records_of_ours(records, records)
+    except (OSError, McapError, ValueError, KeyError, struct.error) as exc:
+        raise SourceError(f"{path}: cannot read the annotations ({_problem(file, exc)})") from exc
     if not entries:
         raise SourceError(f"{path}: not annotated by doseqslam-logs (no '{METADATA_NAME}' record)")
     try:

@@ -18,7 +18,7 @@ from .params_args import (
     verification_from_args,
 )
 from .progress import Progress
-from .times import parse_time_ns
+from .times import time_argument
 
 
 def positive_int(text: str) -> int:
@@ -69,14 +69,14 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "-S",
         "--start",
-        type=parse_time_ns,
+        type=time_argument,
         metavar="TIME",
         help="first log time to use (ns since the epoch, or RFC 3339)",
     )
     parser.add_argument(
         "-E",
         "--end",
-        type=parse_time_ns,
+        type=time_argument,
         metavar="TIME",
         help="log time to stop before (ns since the epoch, or RFC 3339)",
     )

@@ -12,7 +12,8 @@ from ..batch.engine import ENGINES, EngineSettings
 from ..batch.manifest import MANIFEST_NAME
 from ..batch.report import ConsoleDisplay, summary_table
 from ..batch.runner import plan_batch, run_batch
-from ..errors import ExitCode, UsageError
+from ..errors import ExitCode, OutputError, UsageError
+from ..sinks.atomic import check_output_path
 from .annotate import add_run_options, annotate_options_from_args, positive_int
 from .params_args import run_parameters
 
@@ -61,9 +62,18 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     parser.set_defaults(run=run)
 
 
+def _check_outdir(outdir: Path) -> None:
+    """OUTDIR is a folder, or does not exist yet (it is created), and its manifest a regular
+    file or absent (a FIFO there would block the batch): anything else is exit 6."""
+    if outdir.exists() and not outdir.is_dir():
+        raise OutputError(f"{outdir}: the output folder exists and is not a folder")
+    check_output_path(outdir / MANIFEST_NAME)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.address is not None and args.engine != "ray":
         raise UsageError("--address is the address of a Ray cluster: use it with --engine ray")
+    _check_outdir(args.output)
     params = run_parameters(args)  # as annotate: the same defaults, the same outputs
     # Per-log frame-preparing threads: 2 as in annotate; the engines use 1 when logs run in
     # parallel (the cores are already busy).

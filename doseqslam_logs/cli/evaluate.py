@@ -18,6 +18,7 @@ from pathlib import Path
 from ..errors import UsageError
 from ..evaluation.folder_run import evaluate_folder
 from ..evaluation.groundtruth import load_ground_truth
+from ..sources.image_folder import FPS_MAX, FPS_MIN, check_fps
 from . import evaluate_log
 from .annotate import add_max_pixels_option
 from .params_args import (
@@ -48,7 +49,11 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "log", type=Path, nargs="?", metavar="OUT.mcap", help="annotated log (or sidecar)"
     )
     parser.add_argument("--images", type=Path, metavar="DIR", help="image folder")
-    parser.add_argument("--fps", type=float, help="frame rate of the folder (with --images)")
+    parser.add_argument(
+        "--fps",
+        type=frame_rate,
+        help=f"frame rate of the folder (with --images; {FPS_MIN:g} to {FPS_MAX:g})",
+    )
     parser.add_argument(
         "--gt",
         type=Path,
@@ -71,6 +76,16 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     add_parameter_options(parser)
     add_verification_options(parser)  # --images only: a log records its own verification
     parser.set_defaults(run=run)
+
+
+def frame_rate(text: str) -> float:
+    """argparse type of --fps: a number check_fps accepts (else exit 2, argparse's message)."""
+    try:
+        return check_fps(float(text))
+    except (ValueError, UsageError):
+        raise argparse.ArgumentTypeError(
+            f"must be a frame rate from {FPS_MIN:g} to {FPS_MAX:g}, got {text!r}"
+        ) from None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -49,13 +49,7 @@ def parameters_from_args(args: argparse.Namespace) -> Parameters:
         name, sep, value = item.partition("=")
         if not sep or not name.strip():
             raise ParameterError(f"--set expects NAME=VALUE, got {item!r}")
-        text = f"{name.strip()} = {value.strip()}"
-        try:
-            changed = Parameters.from_toml(text)
-        except ParameterError:
-            # Bare words are strings: --set association=greedy.
-            changed = Parameters.from_toml(f'{name.strip()} = "{value.strip()}"')
-        params = params.replace(**{name.strip(): getattr(changed, name.strip())})
+        params = params.replace(**{name.strip(): _toml_value(value.strip())})
     return params
 
 
@@ -100,6 +94,15 @@ def verification_from_args(args: argparse.Namespace) -> VerificationParameters |
             raise ParameterError(f"--vset expects NAME=VALUE, got {item!r}")
         values[name.strip()] = _plain_value(value.strip())
     return VerificationParameters.from_dict(values)
+
+
+def _toml_value(text: str) -> object:
+    """The TOML value `text` spells (`10`, `0.5`, `true`, `nan`), else the text itself: bare
+    words are strings (--set association=greedy)."""
+    try:
+        return tomllib.loads(f"value = {text}")["value"]
+    except tomllib.TOMLDecodeError:
+        return text
 
 
 def _plain_value(text: str) -> object:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -37,6 +38,15 @@ _CHOICES: dict[str, tuple[str, ...]] = {
 # byte for byte (they are written into output files), and `from_dict` accepts them either way.
 # A field added from now on belongs here with its default.
 LATER_FIELDS = ("place_search", "place_count", "place_queries", "place_margin")
+
+
+def reject_non_finite(params: Any) -> None:
+    """ParameterError for a NaN or infinite float field of a parameters dataclass: no
+    comparison the checks make is meaningful for them (NaN passes every `<`)."""
+    for field in fields(params):
+        value = getattr(params, field.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ParameterError(f"{field.name} must be a finite number, got {value}")
 
 
 @dataclass(frozen=True)
@@ -93,6 +103,7 @@ class Parameters:
     place_margin: int = 10
 
     def __post_init__(self) -> None:
+        reject_non_finite(self)
         for name, allowed in _CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ParameterError(
@@ -188,6 +199,11 @@ class Parameters:
             text = Path(path).read_text(encoding="utf-8")
         except OSError as exc:
             raise ParameterError(f"{path}: cannot read parameters: {exc.strerror}") from None
+        except UnicodeDecodeError as exc:
+            raise ParameterError(
+                f"{path}: not a parameters file: not UTF-8 text (byte {exc.start}: "
+                f"{exc.object[exc.start : exc.start + 1]!r}); expected TOML"
+            ) from None
         try:
             return cls.from_toml(text)
         except ParameterError as exc:

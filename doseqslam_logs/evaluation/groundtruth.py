@@ -17,6 +17,7 @@ from scipy import sparse
 from scipy.io.matlab import MatReadError
 
 from ..errors import GroundTruthError, UsageError
+from ..sources import opencv_quiet  # noqa: F401 - OpenCV's log off, once
 
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -313,11 +314,13 @@ def _build(matrix: Any, source: str, variable: str | None, auto_transpose: bool)
         raise GroundTruthError(f"{source}: ground truth must be a square matrix, got {what}")
     if sparse.issparse(matrix):
         coo = sparse.coo_array(matrix)
+        _refuse_non_finite(coo.data, source)
         keep = coo.data != 0
         rows, cols = coo.row[keep].astype(np.int64), coo.col[keep].astype(np.int64)
     else:
         if matrix.dtype.kind not in "biuf":
             raise GroundTruthError(f"{source}: ground truth must be numeric, got {matrix.dtype}")
+        _refuse_non_finite(matrix, source)
         rows, cols = _nonzero_coords(matrix)
     transposed = auto_transpose and rows.size > 0 and bool(np.all(rows < cols))
     if transposed:  # upper triangular: stored as (earlier, query)
@@ -325,6 +328,22 @@ def _build(matrix: Any, source: str, variable: str | None, auto_transpose: bool)
     return GroundTruth(
         shape[0], rows, cols, source=source, variable=variable, transposed=transposed
     )
+
+
+def _refuse_non_finite(array: Any, source: str) -> None:
+    """GroundTruthError for a NaN or infinite cell: NaN is non-zero, so it would be a loop."""
+    if array.dtype.kind != "f" or array.size == 0:
+        return
+    flat = np.ravel(array, order="K")  # a view, not a copy, for contiguous arrays
+    step = max(1, _BLOCK_BYTES // flat.itemsize)
+    bad = sum(
+        int(np.count_nonzero(~np.isfinite(flat[i : i + step]))) for i in range(0, flat.size, step)
+    )
+    if bad:
+        raise GroundTruthError(
+            f"{source}: {bad} of {flat.size} ground-truth cells are NaN or infinite "
+            "(a ground truth holds 1 for a loop, 0 elsewhere)"
+        )
 
 
 def _nonzero_coords(array: npt.NDArray[Any]) -> tuple[IntArray, IntArray]:

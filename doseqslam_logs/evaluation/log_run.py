@@ -21,6 +21,7 @@ from .. import __version__
 from ..annotations.reader import AnnotatedLog, read_annotations
 from ..errors import UsageError
 from ..pipeline.annotate import source_sha256
+from ..sinks.atomic import check_output_path
 from ..sources import open_source
 from ..sources.poses import PoseTrack, read_poses
 from .groundtruth import GroundTruth, load_ground_truth
@@ -254,6 +255,9 @@ def detections(plots: ModuleType, log: AnnotatedLog, gt: GroundTruth, tolerance:
     return found
 
 
+PICTURES = ("pr_curve.png", "difference_matrix.png", "trajectory.png")
+
+
 def _draw(plots: ModuleType, inputs: _Inputs, gt: GroundTruth, result: LogEvaluation) -> list[Path]:
     from .difference_matrix import difference_matrix
 
@@ -264,6 +268,8 @@ def _draw(plots: ModuleType, inputs: _Inputs, gt: GroundTruth, result: LogEvalua
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UsageError(f"{folder}: cannot create the picture folder ({exc.strerror})") from exc
+    for name in PICTURES:  # before drawing any: none is written if one cannot be
+        check_output_path(folder / name)
     meta = log.metadata
     title = f"{log.path.name} | {meta.image_topic} | parameters {meta.parameters_hash}"
     marked = detections(plots, log, gt, options.tolerance)

@@ -10,8 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..annotations.reader import read_annotations
-from ..errors import UsageError
-from ..sinks.atomic import atomic_output
+from ..errors import OutputError, UsageError
+from ..sinks.atomic import atomic_output, check_output_path
 from . import csv_format, g2o_format, jsonl_format, tum_format
 from .base import Exporter, ExportOptions, ExportResult
 
@@ -38,14 +38,16 @@ def export_log(
     command does. With `output`, the text is written there atomically and the result holds
     only the summary; without, the caller writes `result.chunks` (they are built lazily).
 
-    Raises UsageError (unknown format, output that would replace the input, unusable input
-    for the format), SourceError (not an annotated log), OutputError.
+    Raises UsageError (unknown format, unusable input for the format), SourceError (not an
+    annotated log), OutputError (output that would replace the input or cannot be written).
     """
     if format not in FORMATS:
         raise UsageError(f"unknown export format {format!r} (formats: {', '.join(FORMATS)})")
     log = Path(log)
-    if output is not None and Path(output).resolve() == log.resolve():
-        raise UsageError(f"{output}: the output would replace the input")
+    if output is not None:
+        check_output_path(output)
+        if Path(output).resolve() == log.resolve():
+            raise OutputError(f"{output}: the output would replace the input")
     result = FORMATS[format].export(read_annotations(log), options or ExportOptions())
     if output is None:
         return result

@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -25,7 +26,7 @@ from ..errors import (
     SourceError,
     TimestampError,
 )
-from ..sinks.atomic import scratch_file
+from ..sinks.atomic import check_output_path, scratch_file
 from ..sinks.mcap_writer import (
     Annotations,
     WriteSummary,
@@ -214,6 +215,12 @@ class _TimesRecorder:
         return FrameTimes.from_pairs(self.pairs)
 
 
+def printable_name(path: Path) -> str:
+    """`path`'s name as UTF-8 text: bytes that are not UTF-8 (a name from another locale)
+    are written as \\xNN, since MCAP strings must be UTF-8."""
+    return os.fsencode(path.name).decode("utf-8", "backslashreplace")
+
+
 def run_metadata(
     params: Parameters,
     result: ReplayResult,
@@ -233,7 +240,7 @@ def run_metadata(
         parameters_json=params.canonical_json(),
         parameters_hash=params.hash,
         feature_detector=result.feature_detector,
-        source_file=log.name,
+        source_file=printable_name(log),
         source_sha256=sha256,
         image_topic=topic,
         time_source=options.time_source,
@@ -290,17 +297,22 @@ def count_missing(counts: FrameCounts, promise: Promise | None, log: Path, topic
 
 
 def refuse_no_frame(
-    counts: FrameCounts, recovery: SalvageReport | None, log: Path, topic: str
+    counts: FrameCounts, recovery: SalvageReport | None, log: Path, topic: str, window: str
 ) -> None:
     """Raises when not one frame was used: SourceError when --recover found no complete image
-    message, else ImageDecodeError (what every skipped one was)."""
+    message, else ImageDecodeError (no image message in the `window` asked for, or what every
+    skipped one was)."""
     lost = sum(counts.skipped[reason] for reason in (SKIP_CORRUPT_CHUNK, SKIP_MISSING))
     if recovery is not None and counts.used == 0 and counts.messages == lost:
         raise SourceError(
             f"{log}: nothing to recover on {topic}: no complete image message "
             f"({recovery.describe()})"
         )
-    if counts.used == 0 and counts.messages > 0:
+    if counts.messages == 0:
+        raise ImageDecodeError(
+            f"{log}: no image message of {topic}{window}: nothing to annotate", "no image"
+        )
+    if counts.used == 0:
         reasons = ", ".join(f"{n} {why}" for why, n in counts.skipped_by_reason().items())
         first = next(iter(counts.first_skip.values()), "")
         raise ImageDecodeError(
@@ -335,7 +347,8 @@ def annotate_log(
     options = options or AnnotateOptions()
     if params is None:
         params = command_detector_parameters(options.verification)
-    if log.exists():  # before the detector runs, not after
+    check_output_path(output)  # before the detector runs, not after
+    if log.exists():
         refuse_same_file(log, output)
     if not (options.recover and is_mcap_file(log)):
         return _annotate(log, log, output, params, options, progress, expected, None)
@@ -358,6 +371,15 @@ def annotate_log(
             # Messages about the recovered copy are about the log, for whoever reads them.
             exc.args = (str(exc).replace(str(repaired), str(log)), *exc.args[1:])
             raise
+
+
+def _window(options: AnnotateOptions) -> str:
+    """' in the log-time window ...' of -S/-E, or '' without them."""
+    if options.start_ns is None and options.end_ns is None:
+        return ""
+    start = "its start" if options.start_ns is None else str(options.start_ns)
+    end = "its end" if options.end_ns is None else str(options.end_ns)
+    return f" with log time in [{start}, {end}) (-S/-E)"
 
 
 def _annotate(
@@ -394,7 +416,7 @@ def _annotate(
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
     count_missing(counts, promise, log, topic)
-    refuse_no_frame(counts, recovery, log, topic)
+    refuse_no_frame(counts, recovery, log, topic, _window(options))
     frame_times = recorder.frame_times()
     verification = verify_decisions(read_path, topic, result, frame_times, options)
     sha256 = digest.result()

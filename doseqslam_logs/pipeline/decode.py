@@ -10,6 +10,9 @@ Rules (docs/robustness.md has them per case):
   is skipped under SKIP_DUPLICATE; equal stamps with other pixels are kept;
 * a frame stamped before the previous frame is skipped under SKIP_BACKWARDS, or raises
   TimestampError with on_error="fail";
+* a log time later than sources.base.MAX_TIME_NS (2038: our messages could not carry it; such
+  clocks are broken) is skipped under SKIP_LOG_TIME, or raises TimestampError with
+  on_error="fail"; an invalid header stamp reaches here as a missing one (sources.images);
 * with header time, a jump of the camera clock (the header stamps move more than
   CLOCK_JUMP_NS further or less than the log times do between two frames, e.g. an NTP step of
   hours) is bridged: from there on the stamps are shifted so that the detector's time moves as
@@ -31,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import ImageDecodeError, TimestampError
-from ..sources.base import ImageMessage
+from ..sources.base import MAX_TIME_NS, ImageMessage
 from ..sources.frame import Frame
 from ..sources.images import TOO_LARGE, decode_gray
 
@@ -42,6 +45,7 @@ Decoder = Callable[[ImageMessage], npt.NDArray[np.uint8]]
 SKIP_DECODE = "undecodable image"
 SKIP_BACKWARDS = "timestamp earlier than the previous frame"
 SKIP_DUPLICATE = "duplicate message"
+SKIP_LOG_TIME = "log time out of range"
 SKIP_CORRUPT_CHUNK = "lost in a corrupt chunk"  # annotate --recover: see annotate.py
 # The log's Statistics record / bag index / metadata.yaml promises more messages of the topic
 # than its data holds (a record lost without a trace in the data section).
@@ -135,8 +139,14 @@ def decoded_frames(
     shift = 0  # added to the header stamps since the last camera clock jump
     for msg in messages:
         counts.messages += 1
-        stamp = frame_time(msg, time_source, counts) + shift
         where = f"{msg.topic} at log time {msg.log_time_ns}"
+        if msg.log_time_ns > MAX_TIME_NS:
+            detail = f"{where}: later than {MAX_TIME_NS} (2038-01-19T03:14:07.999999999Z)"
+            if on_error == "fail":
+                raise TimestampError(f"{SKIP_LOG_TIME}: {detail}")
+            counts.skip(SKIP_LOG_TIME, detail)
+            continue
+        stamp = frame_time(msg, time_source, counts) + shift
         if previous is not None:
             if (
                 msg.log_time_ns == previous.log_time

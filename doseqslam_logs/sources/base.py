@@ -13,6 +13,9 @@ ImageKind = Literal["raw", "compressed"]
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 ROS1_MAGIC = b"#ROSBAG V2.0\n"
 SQLITE_MAGIC = b"SQLite format 3\x00"
+# The latest time our annotation messages can carry: builtin_interfaces/Time has int32 seconds
+# (2038-01-19T03:14:07.999999999Z). Later stamps and log times are invalid (docs/robustness.md).
+MAX_TIME_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -9,11 +10,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import SourceError
+from ..errors import SourceError, UsageError
+from . import opencv_quiet  # noqa: F401 - OpenCV's log off, once
 from .frame import Frame
 from .image_header import DEFAULT_MAX_PIXELS, claimed_size
 from .images import Gray, captured_stderr, check_pixel_cap
 
+# Frame rates a folder can be stamped at: from one frame every 11.6 days (10,000 frames then
+# span 3,000 years, still an int64 of ns) to one frame per nanosecond.
+FPS_MIN, FPS_MAX = 1e-6, 1e9
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff"}
 
 
@@ -41,6 +46,13 @@ def list_images(folder: Path) -> list[Path]:
 def folder_time_ns(index: int, fps: float) -> int:
     """The stamp `folder_frames` gives frame `index`: index / fps seconds."""
     return round(index * 1e9 / fps)
+
+
+def check_fps(fps: float) -> float:
+    """`fps` if a folder can be stamped at it; UsageError otherwise (NaN, inf, out of range)."""
+    if not (math.isfinite(fps) and FPS_MIN <= fps <= FPS_MAX):
+        raise UsageError(f"--fps must be a frame rate from {FPS_MIN:g} to {FPS_MAX:g}, got {fps}")
+    return fps
 
 
 def read_gray_file(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> Gray:
@@ -72,11 +84,10 @@ def folder_frames(
 ) -> Iterator[Frame]:
     """Frames of the folder's images, frame i stamped i / fps seconds.
 
-    Raises SourceError for a non-positive rate or an image that cannot be read,
-    ImageDecodeError for one over `max_pixels`.
+    Raises UsageError for a rate check_fps refuses, SourceError for an image that cannot be
+    read, ImageDecodeError for one over `max_pixels`.
     """
-    if not fps > 0:
-        raise SourceError(f"--fps must be positive, got {fps}")
+    check_fps(fps)
     for index, path in enumerate(list_images(folder)):
         stamp = folder_time_ns(index, fps)
         yield Frame(index, stamp, stamp, None, read_gray_file(path, max_pixels))

@@ -27,7 +27,8 @@ import numpy as np
 import numpy.typing as npt
 
 from doseqslam_logs.errors import ImageDecodeError
-from doseqslam_logs.sources.base import ImageKind, ImageMessage
+from doseqslam_logs.sources import opencv_quiet  # noqa: F401 - OpenCV's log off, once
+from doseqslam_logs.sources.base import MAX_TIME_NS, ImageKind, ImageMessage
 from doseqslam_logs.sources.image_header import DEFAULT_MAX_PIXELS, claimed_size
 
 Gray = npt.NDArray[np.uint8]
@@ -330,11 +331,16 @@ class RecordInfo:
 
 def _stamp_ns(stamp: Any) -> int | None:
     """Nanoseconds of a ROS time (sec/nanosec), protobuf Timestamp (seconds/nanos) or JSON
-    foxglove time (sec/nsec); None when the message carries none of these."""
+    foxglove time (sec/nsec); None when the message carries none of these, or an invalid one
+    (negative seconds, nanoseconds outside [0, 1e9), later than MAX_TIME_NS): the frame then
+    falls back to its log time, counted, as for a missing stamp."""
     for sec_name, nsec_name in (("sec", "nanosec"), ("seconds", "nanos"), ("sec", "nsec")):
         sec, nsec = getattr(stamp, sec_name, None), getattr(stamp, nsec_name, None)
         if sec is not None and nsec is not None:
-            return int(sec) * 1_000_000_000 + int(nsec)
+            if int(sec) < 0 or not 0 <= int(nsec) < 1_000_000_000:
+                return None
+            total = int(sec) * 1_000_000_000 + int(nsec)
+            return total if total <= MAX_TIME_NS else None
     return None
 
 

@@ -15,17 +15,19 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import errno
 import heapq
 import inspect
 import io
 import json
+import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 from typing import IO, Any
 
-from mcap.exceptions import EndOfFile, InvalidMagic, RecordLengthLimitExceeded
+from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
 from mcap.reader import McapReader, NonSeekingReader, SeekingReader
 from mcap.records import Channel, Message, MessageIndex, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
@@ -276,10 +278,42 @@ def describe_read_error(exc: BaseException) -> str:
         return "the MCAP magic is missing where it belongs: the file is corrupt"
     if isinstance(exc, MemoryError):
         return "a record claims an impossible size: the file is corrupt"
+    words = _corrupt_structure(exc)
+    if words is not None:
+        return f"{words}: the file is corrupt"
     text = " ".join(str(exc).split())
     if len(text) > 200:
         text = text[:200] + "..."
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+# What Python (not the mcap library) raises when a record's fields are damaged, in our words:
+# the parser read a length or offset that points nowhere, or text that is not text.
+_BAD_OFFSET_TEXTS = ("read length must be non-negative", "negative seek value", "offset-sized")
+
+
+def _corrupt_structure(exc: BaseException) -> str | None:
+    """What is damaged, for the exceptions a damaged record makes the parser raise; None for
+    any other exception."""
+    if isinstance(exc, UnicodeDecodeError):
+        return "a record holds a name or text that is not UTF-8"
+    if isinstance(exc, struct.error):
+        return "a record is shorter than its fields"
+    if isinstance(exc, OverflowError) or (
+        isinstance(exc, ValueError) and any(t in str(exc) for t in _BAD_OFFSET_TEXTS)
+    ):
+        return "a record's length or offset is impossible"
+    if isinstance(exc, OSError) and exc.errno == errno.EINVAL:
+        return "a record's offset points outside the file"
+    if isinstance(exc, SystemError) and "Negative size" in str(exc):
+        return "a record's length is shorter than its own header"
+    if type(exc).__module__.split(".")[0] in ("zstandard", "lz4", "_lz4") or (
+        isinstance(exc, RuntimeError) and str(exc).startswith("LZ4")
+    ):
+        return "a chunk does not decompress"
+    if type(exc) is McapError:  # ours (mcap_index) and the library's, in words already
+        return " ".join(str(exc).split())
+    return None
 
 
 def is_complete(file: IO[bytes]) -> bool:

@@ -40,6 +40,15 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+def _is_ros1_file(path: Path) -> bool:
+    """Whether `path` is a file that starts with the ROS 1 bag magic (formats are told by
+    content: a ROS 1 bag may be named anything)."""
+    if not path.is_file():
+        return False
+    with path.open("rb") as file:
+        return file.read(len(ROS1_MAGIC)) == ROS1_MAGIC
+
+
 def _check_layout(path: Path) -> None:
     """Fail early, with a message saying what is needed, where rosbags would fail obscurely."""
     if not path.exists():
@@ -51,14 +60,18 @@ def _check_layout(path: Path) -> None:
                 "file inside it)"
             )
         return
-    if path.suffix in (".bag", ".db3", ".mcap"):
+    if path.suffix in (".bag", ".db3", ".mcap") or _is_ros1_file(path):
         return
-    with path.open("rb") as file:
-        is_ros1 = file.read(len(ROS1_MAGIC)) == ROS1_MAGIC
-    if is_ros1:
-        # rosbags tells ROS 1 from ROS 2 by the .bag suffix alone.
-        raise SourceError(f"{path}: a ROS 1 bag must have the .bag extension to be read")
     raise SourceError(f"{path}: not a ROS bag (expected .bag, .db3, .mcap or a rosbag2 directory)")
+
+
+class _NamedAsBag(type(Path())):  # type: ignore[misc]
+    """`path` as rosbags must see it to read a ROS 1 bag: rosbags tells ROS 1 from ROS 2 by
+    the .bag suffix alone, we by content (the reader opens the real file)."""
+
+    @property
+    def suffix(self) -> str:
+        return ".bag"
 
 
 def _open_reader(path: Path) -> AnyReader:
@@ -66,11 +79,12 @@ def _open_reader(path: Path) -> AnyReader:
     from rosbags.typesys import Stores, get_typestore
 
     _check_layout(path)
-    is_ros1 = path.is_file() and path.suffix == ".bag"
+    is_ros1 = _is_ros1_file(path)
     fallback = get_typestore(Stores.ROS1_NOETIC if is_ros1 else Stores.ROS2_HUMBLE)
     kind = "ROS 1 bag" if is_ros1 else "rosbag2 bag"
+    as_read = _NamedAsBag(path) if is_ros1 and path.suffix != ".bag" else path
     try:
-        reader = AnyReader([path], default_typestore=fallback)
+        reader = AnyReader([as_read], default_typestore=fallback)
         reader.open()
     except Exception as exc:  # rosbags, sqlite (apsw), YAML, OS and decompression errors
         hint = f"; {REINDEX_HINT}" if is_ros1 and "index" in str(exc).lower() else ""

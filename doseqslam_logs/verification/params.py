@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields
 from typing import Any, Literal, get_args
 
 from ..detector.fingerprint import canonical_json, fingerprint
-from ..detector.params import Parameters
+from ..detector.params import Parameters, reject_non_finite
 from ..errors import ParameterError
 
 VerificationDetector = Literal["sift", "orb", "akaze", "brisk"]
@@ -65,6 +65,7 @@ class VerificationParameters:
     bracket: bool = True
 
     def __post_init__(self) -> None:
+        reject_non_finite(self)
         for name, allowed in _CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ParameterError(
