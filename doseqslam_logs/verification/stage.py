@@ -91,6 +91,12 @@ GIVE_UP_AFTER = 2
 COARSE_GRID = 2
 
 
+class Cancelled(Exception):
+    """The stage was told to stop (Ctrl-C or SIGTERM on the main thread): raised inside a
+    verification thread at its next frame pair or frame load, so that it ends in milliseconds
+    instead of finishing the decision, or the whole stage, first."""
+
+
 @dataclass(frozen=True)
 class PairCheck:
     """One candidate pair after verification."""
@@ -210,6 +216,8 @@ class Verifier:
     intrinsics: Intrinsics | None = None
     cache_bytes: int = DEFAULT_CACHE_BYTES
     stats: VerificationStats = field(default_factory=VerificationStats)
+    # Set by whoever runs the stage to stop it: checked before every frame pair and load.
+    cancel: threading.Event = field(default_factory=threading.Event)
 
     def __post_init__(self) -> None:
         self._cache = FeatureCache(self.cache_bytes)
@@ -413,12 +421,17 @@ class Verifier:
         self, query: FrameFeatures, frames: Sequence[int], features: dict[int, FrameFeatures]
     ) -> list[tuple[int, Verdict]]:
         start = time.perf_counter()
-        verdicts = [
-            (m, verify_pair(query, features[m], self.params, self.intrinsics)) for m in frames
-        ]
+        verdicts = []
+        for m in frames:
+            self._check_cancelled()
+            verdicts.append((m, verify_pair(query, features[m], self.params, self.intrinsics)))
         self.stats.pairs_s += time.perf_counter() - start
         self.stats.pairs += len(verdicts)
         return verdicts
+
+    def _check_cancelled(self) -> None:
+        if self.cancel.is_set():
+            raise Cancelled("verification stopped")
 
     def _features(self, indices: list[int]) -> dict[int, FrameFeatures]:
         """Features of these frames: from the cache, the rest loaded in one call."""
@@ -438,6 +451,7 @@ class Verifier:
         loaded: dict[int, FrameFeatures] = {}
         start, extracting = time.perf_counter(), 0.0
         for index, gray in self.load_frames(indices):
+            self._check_cancelled()
             extract_start = time.perf_counter()
             loaded[index] = extract_features(gray, self.params)
             extracting += time.perf_counter() - extract_start
@@ -471,21 +485,21 @@ def verify_in_threads(
     workers = max(1, workers)
     results: list[VerifiedDecision | None] = [None] * len(decisions)
     stats = VerificationStats()
-    lock, failed = threading.Lock(), threading.Event()
+    lock, stop = threading.Lock(), threading.Event()
     order = iter(range(len(decisions)))
 
     def work() -> None:
         with open_loader() as loader:
-            verifier = Verifier(params, loader, intrinsics, cache_bytes // workers)
+            verifier = Verifier(params, loader, intrinsics, cache_bytes // workers, cancel=stop)
             try:
-                while not failed.is_set():
+                while not stop.is_set():
                     with lock:
                         index = next(order, None)
                     if index is None:
                         break
                     results[index] = verifier.verify(decisions[index])
             except BaseException:
-                failed.set()  # the other threads stop at their next decision
+                stop.set()  # the other threads stop at their next frame pair
                 raise
             finally:
                 with lock:
@@ -495,8 +509,15 @@ def verify_in_threads(
         work()
     else:
         with ThreadPoolExecutor(workers, thread_name_prefix="verify") as pool:
-            for future in [pool.submit(work) for _ in range(workers)]:
-                future.result()
+            futures = [pool.submit(work) for _ in range(workers)]
+            try:
+                for future in futures:
+                    future.result()
+            finally:
+                # A KeyboardInterrupt (Ctrl-C, SIGTERM) lands here on the main thread: the
+                # threads stop at their next frame pair, so the pool's shutdown does not wait
+                # for the rest of the stage (minutes on a long log).
+                stop.set()
     done = [result for result in results if result is not None]
     assert len(done) == len(decisions)
     return done, stats
