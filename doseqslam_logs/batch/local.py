@@ -7,15 +7,24 @@ unknown: those logs are then run again one at a time in a fresh pool, so only th
 fails and the others go on. On KeyboardInterrupt (Ctrl-C, or SIGTERM via the command line)
 the workers get SIGTERM, which they turn into KeyboardInterrupt: annotate_log removes its
 temporary file, and no output appears half-written.
+
+A worker must not outlive its batch, even one killed outright (SIGKILL, the OOM killer): on
+Linux each worker asks the kernel for SIGTERM when its parent dies (PR_SET_PDEATHSIG), and an
+orphaned worker gets ORPHAN_GRACE_S to remove its temporary file before it exits regardless.
+multiprocessing's resource tracker then goes too: it ends when the last process holding its
+pipe (the batch and its workers) is gone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import multiprocessing
 import os
 import queue
 import signal
+import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -32,26 +41,54 @@ from .job import Job, Outcome, crashed_outcome, run_job
 POLL_S = 0.2  # how often the driver drains progress and redraws
 PROGRESS_EVERY_S = 0.25  # a worker reports frames done at most this often
 STOP_GRACE_S = 5.0  # after SIGTERM, how long a worker may take to clean up before SIGKILL
+# A worker whose batch died exits this long after it heard of it, whatever it was doing (the
+# promise: no process of ours outlives its batch by more than a second).
+ORPHAN_GRACE_S = 0.5
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
-# In each worker process: the progress queue, when each log last reported, whether a log runs.
+# In each worker process: the progress queue, when each log last reported, whether a log runs,
+# and the batch process that started it.
 _queue: Any = None
 _last_report: dict[str, float] = {}
 _busy = False
+_parent_pid = 0
+
+
+def _exit_terminated() -> None:
+    os._exit(128 + signal.SIGTERM)
 
 
 def _on_sigterm(signum: int, frame: FrameType | None) -> None:
-    if _busy:
-        raise KeyboardInterrupt()  # unwinds annotate_log, which removes its temporary file
-    os._exit(128 + signal.SIGTERM)  # idle: nothing to clean up, and no traceback
+    if not _busy:
+        _exit_terminated()  # idle: nothing to clean up, and no traceback
+    if os.getppid() != _parent_pid:  # orphaned: nobody will SIGKILL us after a grace period
+        timer = threading.Timer(ORPHAN_GRACE_S, _exit_terminated)
+        timer.daemon = True
+        timer.start()
+    raise KeyboardInterrupt()  # unwinds annotate_log, which removes its temporary file
 
 
-def _init_worker(progress_queue: Any) -> None:
-    global _queue
-    _queue = progress_queue
+def _die_with_parent(parent_pid: int) -> None:
+    """SIGTERM from the kernel when the batch process dies (Linux; elsewhere a no-op).
+
+    The signal follows the death of the thread that started the worker: the driver's main
+    thread (ProcessPoolExecutor spawns from `submit`), which ends only with the process."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if os.getppid() != parent_pid:  # it died before prctl took effect
+        _exit_terminated()
+
+
+def _init_worker(progress_queue: Any, parent_pid: int) -> None:
+    global _queue, _parent_pid
+    _queue, _parent_pid = progress_queue, parent_pid
     # The driver decides when to stop: Ctrl-C reaches the whole process group, but only the
     # driver acts on it (it then sends SIGTERM, which cleans up like Ctrl-C would).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
+    _die_with_parent(parent_pid)
 
 
 def _notify(key: str, kind: str, value: int | None) -> None:
@@ -106,7 +143,7 @@ class LocalEngine:
             min(size, len(waiting)),
             mp_context=context,
             initializer=_init_worker,
-            initargs=(progress_queue,),
+            initargs=(progress_queue, os.getpid()),
         )
         running: dict[Future[Outcome], Job] = {}
         try:
