@@ -59,6 +59,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field, fields
 
+from .. import waiting
 from ..detector.events import Candidate, SequenceDecision
 from .geometry import (
     FrameFeatures,
@@ -512,7 +513,7 @@ def verify_in_threads(
             futures = [pool.submit(work) for _ in range(workers)]
             try:
                 for future in futures:
-                    future.result()
+                    waiting.result(future)  # not a bare result(): it would not hear signals
             finally:
                 # A KeyboardInterrupt (Ctrl-C, SIGTERM) lands here on the main thread: the
                 # threads stop at their next frame pair, so the pool's shutdown does not wait
