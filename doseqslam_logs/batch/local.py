@@ -35,6 +35,7 @@ from multiprocessing.context import SpawnContext
 from types import FrameType
 from typing import Any
 
+from ..pipeline.annotate import STAGES
 from .engine import EngineSettings, Events
 from .job import Job, Outcome, crashed_outcome, run_job
 
@@ -198,6 +199,8 @@ def _drain(progress_queue: Any, events: Events) -> None:
             return
         if kind == "expected":
             events.expected(key, value)
+        elif kind == "stage":
+            events.stage(key, STAGES[value])
         else:
             events.progress(key, value)
 

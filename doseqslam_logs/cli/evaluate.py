@@ -130,6 +130,7 @@ def _run_images(args: argparse.Namespace) -> int:
             args.tolerance,
             progress=progress,
             expected=expected,
+            stage=progress.stage,
         )
     finally:
         progress.close()

@@ -148,12 +148,13 @@ def evaluate_folder(
     gt_variable: str | None = None,
     progress: Callable[[int], None] | None = None,
     expected: Callable[[int], None] | None = None,
+    stage: Callable[[str], None] | None = None,
 ) -> FolderEvaluation:
     """Replay the detector over the folder's images (natural file-name order, stamped at `fps`),
     verify its candidates, and score both against `gt` (one row per image), as
     `evaluate --images` does. params=None takes the command's defaults: the verified ones with
     verification, else the paper's. `expected(images)` is called once the folder is listed,
-    `progress(frames done)` after each frame.
+    `progress(frames done)` after each frame, `stage("replay" | "verify")` as each begins.
 
     Raises SourceError (no images), GroundTruthError (unreadable ground truth, or not one row
     per image: checked before the run), ParameterError.
@@ -170,7 +171,11 @@ def evaluate_folder(
         )
     if expected is not None:
         expected(len(files))
+    if stage is not None:
+        stage("replay")
     result = replay(folder_frames(images, fps), make_detector(params), progress)
+    if stage is not None and verification is not None:
+        stage("verify")
     checked = None if verification is None else _verify(files, result, verification, intrinsics)
     scores = _scores(result, checked, truth, params, fps, tolerance)
     return FolderEvaluation(images, fps, params, result, verification=checked, **scores)
