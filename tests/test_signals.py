@@ -301,13 +301,15 @@ def _running(pid: int) -> bool:
 def test_no_process_outlives_a_killed_batch(inputs: dict[str, Path], tmp_path: Path) -> None:
     logs = tmp_path / "logs"
     logs.mkdir()
-    for name in ("a", "b", "c"):
+    for name in ("a", "b"):
         shutil.copy(inputs["laps"], logs / f"{name}.mcap")
-    argv = ["batch", "logs", "-o", "out", "-j", "2", "--time-source", "log"]
+    (logs / "c.mcap").write_bytes(b"")  # fails at once: its worker is idle when the batch dies
+    argv = ["batch", "logs", "-o", "out", "-j", "3", "--time-source", "log"]
     with on_terminal(argv, tmp_path) as run:
-        run.wait_for(r"\.mcap [1-9]\d*/\d+.*\.mcap [1-9]\d*/\d+")  # both workers replaying
-        ours = _children(run.process.pid)  # the workers and multiprocessing's resource tracker
-        assert len(ours) >= 3, ours
+        run.wait_for(r"c\.mcap: FAILED")
+        run.wait_for(r"\.mcap [1-9]\d*/\d+.*\.mcap [1-9]\d*/\d+")  # two workers replaying
+        ours = _children(run.process.pid)  # 3 workers and multiprocessing's resource tracker
+        assert len(ours) >= 4, ours
         run.process.kill()
         run.process.wait()
         killed = time.monotonic()
@@ -322,3 +324,4 @@ def test_no_process_outlives_a_killed_batch(inputs: dict[str, Path], tmp_path: P
     assert survivors == []
     # The workers heard of it in time to remove their temporary files: no output at all.
     assert [p for p in left_in(tmp_path / "out") if p != "manifest.jsonl"] == []
+    assert sha256(logs / "a.mcap") == sha256(inputs["laps"])

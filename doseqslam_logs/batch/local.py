@@ -9,8 +9,9 @@ the workers get SIGTERM, which they turn into KeyboardInterrupt: annotate_log re
 temporary file, and no output appears half-written.
 
 A worker must not outlive its batch, even one killed outright (SIGKILL, the OOM killer): on
-Linux each worker asks the kernel for SIGTERM when its parent dies (PR_SET_PDEATHSIG), and an
-orphaned worker gets ORPHAN_GRACE_S to remove its temporary file before it exits regardless.
+Linux each worker asks the kernel for SIGTERM when its parent dies (PR_SET_PDEATHSIG), a
+thread of it watches the parent pid too (other systems, idle workers), and an orphaned worker
+gets ORPHAN_GRACE_S to remove its temporary file before it exits regardless.
 multiprocessing's resource tracker then goes too: it ends when the last process holding its
 pipe (the batch and its workers) is gone.
 """
@@ -46,13 +47,16 @@ STOP_GRACE_S = 5.0  # after SIGTERM, how long a worker may take to clean up befo
 # promise: no process of ours outlives its batch by more than a second).
 ORPHAN_GRACE_S = 0.5
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PARENT_POLL_S = 0.2  # how often a worker's watcher thread checks that its batch still runs
 
 # In each worker process: the progress queue, when each log last reported, whether a log runs,
-# and the batch process that started it.
+# the batch process that started it, whether it is stopping, and when it exits regardless.
 _queue: Any = None
 _last_report: dict[str, float] = {}
 _busy = False
 _parent_pid = 0
+_stopping = False
+_exit_timer: threading.Timer | None = None
 
 
 def _exit_terminated() -> None:
@@ -60,26 +64,51 @@ def _exit_terminated() -> None:
 
 
 def _on_sigterm(signum: int, frame: FrameType | None) -> None:
+    global _stopping
     if not _busy:
         _exit_terminated()  # idle: nothing to clean up, and no traceback
     if os.getppid() != _parent_pid:  # orphaned: nobody will SIGKILL us after a grace period
-        timer = threading.Timer(ORPHAN_GRACE_S, _exit_terminated)
-        timer.daemon = True
-        timer.start()
-    raise KeyboardInterrupt()  # unwinds annotate_log, which removes its temporary file
+        _exit_soon()
+    if not _stopping:  # a second KeyboardInterrupt could cut the first one's clean-up short
+        _stopping = True
+        raise KeyboardInterrupt()  # unwinds annotate_log, which removes its temporary file
+
+
+def _exit_soon() -> None:
+    global _exit_timer
+    if _exit_timer is None:
+        _exit_timer = threading.Timer(ORPHAN_GRACE_S, _exit_terminated)
+        _exit_timer.daemon = True
+        _exit_timer.start()
 
 
 def _die_with_parent(parent_pid: int) -> None:
-    """SIGTERM from the kernel when the batch process dies (Linux; elsewhere a no-op).
+    """SIGTERM when the batch process dies, from the kernel (Linux) and from a thread that
+    watches the parent pid (everywhere; also where prctl is refused, e.g. by a sandbox).
 
-    The signal follows the death of the thread that started the worker: the driver's main
-    thread (ProcessPoolExecutor spawns from `submit`), which ends only with the process."""
+    The kernel's signal follows the death of the thread that started the worker: the driver's
+    main thread (ProcessPoolExecutor spawns from `submit`), which ends only with the process.
+    It may be delivered to any thread of the worker, and an idle worker's main thread, blocked
+    reading its next job, would not run the handler: the watcher signals that thread itself."""
+    _parent_death_signal()
+    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
+    if os.getppid() != parent_pid:  # it died before prctl took effect
+        _exit_terminated()
+
+
+def _parent_death_signal() -> None:
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
             libc = ctypes.CDLL(None, use_errno=True)
             libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
-    if os.getppid() != parent_pid:  # it died before prctl took effect
-        _exit_terminated()
+
+
+def _watch_parent(parent_pid: int) -> None:
+    while os.getppid() == parent_pid:
+        time.sleep(PARENT_POLL_S)
+    main = threading.main_thread().ident
+    if main is not None:
+        signal.pthread_kill(main, signal.SIGTERM)
 
 
 def _init_worker(progress_queue: Any, parent_pid: int) -> None:
