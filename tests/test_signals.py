@@ -36,6 +36,8 @@ from mcap.writer import CompressionType, Writer
 
 from doseqslam_logs.errors import ExitCode
 from doseqslam_logs.sources import open_source
+from doseqslam_logs.verification import DEFAULT_VERIFICATION
+from doseqslam_logs.verification.stage import Verifier, verify_in_threads
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
 TOPIC = "/camera/image/compressed"
@@ -325,3 +327,34 @@ def test_no_process_outlives_a_killed_batch(inputs: dict[str, Path], tmp_path: P
     # The workers heard of it in time to remove their temporary files: no output at all.
     assert [p for p in left_in(tmp_path / "out") if p != "manifest.jsonl"] == []
     assert sha256(logs / "a.mcap") == sha256(inputs["laps"])
+
+
+# --- the stop inside the verification stage -----------------------------------------------------
+
+
+def test_an_error_in_one_verification_thread_is_raised_not_the_others_stop(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The stop that an error sets makes the other threads leave their decision at the next
+    frame pair; the error is what the stage raises, not their being stopped."""
+    stopped = []
+
+    def verify(self: Verifier, decision: object) -> object:
+        if decision == "bad":
+            time.sleep(0.2)  # the other thread is inside its long decision by now
+            raise LookupError("the frame loader did not return frames [7]")
+        for _ in range(1000):  # a long decision: checks between frame pairs
+            self._check_cancelled()
+            time.sleep(0.01)
+        stopped.append(False)  # not stopped: it ran to its end
+        return decision
+
+    monkeypatch.setattr(Verifier, "verify", verify)
+    with pytest.raises(LookupError, match="did not return"):
+        verify_in_threads(
+            ["long", "bad"],  # type: ignore[list-item]  # only verify() sees them
+            lambda: contextlib.nullcontext(lambda indices: iter(())),
+            DEFAULT_VERIFICATION,
+            workers=2,
+        )
+    assert stopped == []

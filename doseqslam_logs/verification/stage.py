@@ -499,6 +499,9 @@ def verify_in_threads(
                     if index is None:
                         break
                     results[index] = verifier.verify(decisions[index])
+            except Cancelled:
+                pass  # stopped by another thread's error or the main thread's interrupt: that
+                # is what gets raised, not this
             except BaseException:
                 stop.set()  # the other threads stop at their next frame pair
                 raise
