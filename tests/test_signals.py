@@ -28,6 +28,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -36,8 +37,8 @@ from mcap.writer import CompressionType, Writer
 
 from doseqslam_logs.errors import ExitCode
 from doseqslam_logs.sources import open_source
-from doseqslam_logs.verification import DEFAULT_VERIFICATION
-from doseqslam_logs.verification.stage import Verifier, verify_in_threads
+from doseqslam_logs.verification import DEFAULT_VERIFICATION, stage
+from doseqslam_logs.verification.stage import Cancelled, Verifier, verify_in_threads
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
 TOPIC = "/camera/image/compressed"
@@ -358,3 +359,41 @@ def test_an_error_in_one_verification_thread_is_raised_not_the_others_stop(
             workers=2,
         )
     assert stopped == []
+
+
+def test_an_interrupt_while_the_verification_threads_start_stops_those_started(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Ctrl-C landing in the pool's submit() (the stage has just begun) must stop the threads
+    already started: the pool's shutdown does not join a thread whose start was interrupted,
+    and the interpreter's exit would wait for it to finish the stage."""
+    ended = []
+
+    def verify(self: Verifier, decision: object) -> object:
+        try:
+            for _ in range(1000):  # a long decision: checks between frame pairs
+                self._check_cancelled()
+                time.sleep(0.01)
+        except Cancelled:
+            ended.append("stopped")
+            raise
+        ended.append("ran to its end")
+        return decision
+
+    class InterruptedPool(stage.ThreadPoolExecutor):
+        def submit(self, *args: Any, **kwargs: Any) -> Any:
+            if getattr(self, "_threads", None):  # the second thread: Ctrl-C arrives
+                time.sleep(0.1)  # the first is inside its decision
+                raise KeyboardInterrupt
+            return super().submit(*args, **kwargs)
+
+    monkeypatch.setattr(Verifier, "verify", verify)
+    monkeypatch.setattr(stage, "ThreadPoolExecutor", InterruptedPool)
+    with pytest.raises(KeyboardInterrupt):
+        verify_in_threads(
+            ["long", "long"],  # type: ignore[list-item]  # only verify() sees them
+            lambda: contextlib.nullcontext(lambda indices: iter(())),
+            DEFAULT_VERIFICATION,
+            workers=2,
+        )
+    assert ended == ["stopped"]

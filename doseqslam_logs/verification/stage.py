@@ -513,14 +513,16 @@ def verify_in_threads(
         work()
     else:
         with ThreadPoolExecutor(workers, thread_name_prefix="verify") as pool:
-            futures = [pool.submit(work) for _ in range(workers)]
             try:
+                futures = [pool.submit(work) for _ in range(workers)]
                 for future in futures:
                     waiting.result(future)  # not a bare result(): it would not hear signals
             finally:
                 # A KeyboardInterrupt (Ctrl-C, SIGTERM) lands here on the main thread: the
-                # threads stop at their next frame pair, so the pool's shutdown does not wait
-                # for the rest of the stage (minutes on a long log).
+                # threads stop at their next frame pair, so neither the pool's shutdown nor
+                # the interpreter's exit waits for the rest of the stage (minutes on a long
+                # log). Also when it lands in submit(): a thread started there is not yet
+                # one the pool's shutdown joins.
                 stop.set()
     done = [result for result in results if result is not None]
     assert len(done) == len(decisions)
