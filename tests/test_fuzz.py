@@ -8,10 +8,10 @@ from shared/data; a rosbag2 .db3 (SQLite) of RTAB-Map frames. The payload target
 image inside a valid ROS 2 MCAP instead: JPEG and PNG bytes, and raw images whose data,
 width, height, step and encoding fields are mutated. Each mutant goes through open_source
 (every image decoded), `info` and `annotate` (container mutants of MCAP also with --recover)
-in-process, under a per-file time limit. Accepted:
-success, or a documented error (DoseqslamError, exit code 3, 4 or 5) printed as one line naming
-the file; never an internal error (exit 70), a traceback, other output on stderr (file
-descriptor 2 included), a changed input, a leftover temporary file or an output after failure.
+in-process, under a per-file time limit. Accepted: success, or a documented error
+(DoseqslamError, exit code 3, 4 or 5) printed as one line naming the file; never an internal
+error (exit 70), a traceback, other output on stderr (file descriptor 2 included), a changed
+input, a leftover temporary file or an output after failure.
 
 Derandomized (fixed examples, no example database) so that CI runs the same cases every time;
 each target well under a minute (about 15-30 s on a loaded 2-core machine). FUZZ_EXAMPLES=N
