@@ -320,6 +320,9 @@ class Collected:
     def progress(self, key: str, done: int) -> None:
         self.frames_done[key] = done
 
+    def stage(self, key: str, name: str) -> None:
+        pass
+
     def finished(self, outcome: Outcome) -> None:
         self.outcomes.append(outcome)
 

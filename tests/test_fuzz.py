@@ -1,21 +1,27 @@
-"""Issue #8, item 4: mutated real MCAP and bag bytes never crash, hang or damage anything.
+"""Issues #8 and #21: mutated logs and image payloads never crash, hang or damage anything.
 
-Hypothesis flips bits, cuts, inserts, duplicates ranges and plants huge length fields in four
-real logs (a small ROS 2 MCAP of RTAB-Map frames and a Foxglove one of raw frames, both written
-with tools/camera_log_writers.py; the real aruco_marker ROS 1 bag and the real rerun rosbag2
-MCAP from shared/data). Each mutant goes through open_source (every image decoded), `info`
-and `annotate` (MCAP also with --recover) in-process, under a per-file time limit. Accepted:
-success, or a documented error (DoseqslamError, exit code 3, 4 or 5) printed as one line naming
-the file; never an internal error (exit 70), a traceback, other output on stderr (file
-descriptor 2 included), a changed input, a leftover temporary file or an output after failure.
+One fuzz target per container format and per image payload format (issue #21, item 6).
+Hypothesis flips bits, cuts, inserts, duplicates ranges and plants huge length fields in real
+logs: a small ROS 2 MCAP of RTAB-Map frames and a Foxglove one of raw frames, both written with
+tools/camera_log_writers.py; the real aruco_marker ROS 1 bag and the real rerun rosbag2 MCAP
+from shared/data; a rosbag2 .db3 (SQLite) of RTAB-Map frames. The payload targets damage the
+image inside a valid ROS 2 MCAP instead: JPEG and PNG bytes, and raw images whose data,
+width, height, step and encoding fields are mutated. Each mutant goes through open_source
+(every image decoded), `info` and `annotate` (container mutants of MCAP also with --recover)
+in-process, under a per-file time limit. Accepted: success, or a documented error
+(DoseqslamError, exit code 3, 4 or 5) printed as one line naming the file; never an internal
+error (exit 70), a traceback, other output on stderr (file descriptor 2 included), a changed
+input, a leftover temporary file or an output after failure.
 
 Derandomized (fixed examples, no example database) so that CI runs the same cases every time;
-about 30 s in all. FUZZ_EXAMPLES=N raises the number of examples per log for a longer run.
+each target well under a minute (about 15-30 s on a loaded 2-core machine). FUZZ_EXAMPLES=N
+raises the number of examples per target for a longer run.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import os
 import shutil
@@ -28,7 +34,10 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -41,6 +50,8 @@ from doseqslam_logs.sources.images import decode_gray
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_bad_inputs as corpus
 
+clw = corpus.clw  # tools/camera_log_writers.py, importable once corpus put tools/ on the path
+Item = corpus.Item
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 
 PER_FILE_S = 20  # one mutant through every step; a healthy run takes well under a second
@@ -75,6 +86,7 @@ class Seed:
     data: bytes
     suffix: str
     topic: tuple[str, ...] = ()  # --topic for a log with several cameras
+    recover: bool = True  # MCAP: annotate --recover too (not for payload mutants: no use)
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +111,13 @@ def seeds(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[s
         "ros1_bag": Seed((shared_data / corpus.ARUCO_BAG).read_bytes(), ".bag"),
         "rerun_mcap": Seed(
             (shared_data / corpus.RERUN_MCAP).read_bytes(), ".mcap", ("--topic", "/image")
+        ),
+        # A bare .db3 (the tool reads one without its metadata.yaml).
+        "ros2_db3": Seed(
+            (
+                corpus.write_log(folder / "db3", corpus.good_items(jpegs), "db3") / "db3.db3"
+            ).read_bytes(),
+            ".db3",
         ),
     }
 
@@ -222,7 +241,7 @@ def check_mutant(capfd: pytest.CaptureFixture[str], data: bytes, seed: Seed) -> 
             output = str(folder / "out" / "out.mcap")
             run_cli(capfd, log, ["info", str(log)])
             run_cli(capfd, log, ["annotate", str(log), "-o", output, *seed.topic])
-            if suffix == ".mcap":
+            if suffix == ".mcap" and seed.recover:
                 run_cli(capfd, log, ["annotate", str(log), "-o", output, "--recover", *seed.topic])
         assert hashlib.sha256(log.read_bytes()).hexdigest() == before, "the input changed"
     finally:
@@ -251,6 +270,7 @@ def fuzz_settings(examples: int) -> settings:
         ("foxglove_mcap", 150),
         ("ros1_bag", 200),
         ("rerun_mcap", 50),
+        ("ros2_db3", 120),
     ],
 )
 def test_mutated_logs_fail_only_as_documented(
@@ -266,6 +286,97 @@ def test_mutated_logs_fail_only_as_documented(
     OUTCOMES.clear()
     fuzz()
     print(name, sorted(OUTCOMES.items()))
+
+
+# --- image payloads ---------------------------------------------------------------------------
+
+PAYLOAD_FRAMES = 4
+RAW_SIZE = (64, 48)
+# Raw Image fields: the frame's own, near it, zero, and far beyond any buffer (uint32 range).
+dimensions = st.one_of(
+    st.sampled_from([0, 1, 47, 48, 63, 64, 65, 128, 192]), st.integers(0, 2**32 - 1)
+)
+encodings = st.sampled_from(["mono8", "rgb8", "bgr8", "rgba8", "mono16", "8UC1", "yuv422", ""])
+
+
+@pytest.fixture(scope="module")
+def payloads(shared_data: Path) -> dict[str, list[clw.ImageFrame]]:
+    """The frames whose payloads get damaged: JPEG, PNG and raw rgb8, small and fast."""
+    jpegs = corpus.rtabmap_jpegs(shared_data, PAYLOAD_FRAMES)
+    small = [corpus.resized_jpeg(data, 160, 120) for data in jpegs]
+    pngs = []
+    for data in small:
+        ok, png = cv2.imencode(".png", cv2.imdecode(np.frombuffer(data, np.uint8), 1))
+        assert ok
+        pngs.append(png.tobytes())
+    raw = []
+    for i, data in enumerate(small):
+        rgb = cv2.resize(cv2.imdecode(np.frombuffer(data, np.uint8), 1), RAW_SIZE)
+        raw.append(clw.ImageFrame(corpus.stamp(i), rgb.tobytes(), "rgb8", *RAW_SIZE))
+    return {
+        "jpeg": [corpus.jpeg_frame(d, corpus.stamp(i)) for i, d in enumerate(small)],
+        "png": [clw.ImageFrame(corpus.stamp(i), d, "png") for i, d in enumerate(pngs)],
+        "raw": raw,
+    }
+
+
+def damaged_item(frame: clw.ImageFrame, mutations: list[Op], fields: dict[str, Any]) -> Item:
+    """The frame's message with its payload mutated (raw: and its fields replaced)."""
+    data = mutate(frame.data, mutations)
+    log_ns = frame.stamp_ns + corpus.LATENCY_NS
+    if frame.compressed:
+        return (dataclasses.replace(frame, data=data), log_ns)
+    # The message's fields, past what ImageFrame would accept.
+    return (frame, log_ns, {"data": np.frombuffer(data, np.uint8), **fields})
+
+
+def payload_log(items: list[Item]) -> bytes:
+    """A valid ROS 2 MCAP of the items."""
+    folder = Path(tempfile.mkdtemp(prefix="payload-"))
+    try:
+        return corpus.write_log(folder / "log.mcap", items).read_bytes()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.mark.parametrize(("kind", "examples"), [("jpeg", 60), ("png", 50), ("raw", 60)])
+def test_mutated_image_payloads_fail_only_as_documented(
+    payloads: dict[str, list[clw.ImageFrame]],
+    capfd: pytest.CaptureFixture[str],
+    kind: str,
+    examples: int,
+) -> None:
+    frames = payloads[kind]
+
+    @fuzz_settings(examples)
+    @given(
+        mutations=st.lists(ops, min_size=1, max_size=4),
+        # One frame damaged (the others still make a run), or every frame alike (exit 5).
+        damaged=st.one_of(st.integers(0, PAYLOAD_FRAMES - 1), st.none()),
+        fields=st.fixed_dictionaries(
+            {},
+            optional={
+                "width": dimensions,
+                "height": dimensions,
+                "step": dimensions,
+                "encoding": encodings,
+                "is_bigendian": st.sampled_from([0, 1]),
+            },
+        ),
+    )
+    def fuzz(mutations: list[Op], damaged: int | None, fields: dict[str, Any]) -> None:
+        items: list[Item] = [
+            damaged_item(f, mutations, fields)
+            if damaged in (None, i)
+            else (f, f.stamp_ns + corpus.LATENCY_NS)
+            for i, f in enumerate(frames)
+        ]
+        log = payload_log(items)
+        check_mutant(capfd, log, Seed(log, ".mcap", recover=False))
+
+    OUTCOMES.clear()
+    fuzz()
+    print(kind, sorted(OUTCOMES.items()))
 
 
 def test_the_unmutated_seeds_annotate(

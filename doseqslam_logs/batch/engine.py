@@ -33,6 +33,9 @@ class Events(Protocol):
 
     def progress(self, key: str, done: int) -> None: ...
 
+    def stage(self, key: str, name: str) -> None:
+        """A stage of the log's run began (pipeline.annotate.STAGES)."""
+
     def finished(self, outcome: Outcome) -> None: ...
 
     def tick(self) -> None:

@@ -15,10 +15,17 @@ from pathlib import Path
 from ..detector import Parameters
 from ..detector.fingerprint import fingerprint
 from ..errors import DoseqslamError, ExitCode, OutputError
-from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log, source_sha256
+from ..pipeline.annotate import (
+    STAGES,
+    AnnotateOptions,
+    AnnotateResult,
+    annotate_log,
+    source_sha256,
+)
 from .manifest import Counts, FileStamp
 
-# (input key, "expected" | "progress", number): frames expected or done, from a worker.
+# (input key, "expected" | "progress" | "stage", number): frames expected or done, or the
+# index in STAGES of the stage that began, from a worker.
 Notify = Callable[[str, str, int | None], None]
 
 CRASHED = "worker crashed"
@@ -123,12 +130,18 @@ def run_job(job: Job, notify: Notify | None = None) -> Outcome:
         if notify is not None:
             notify(job.key, "expected", total)
 
+    def stage(name: str) -> None:
+        if notify is not None:
+            notify(job.key, "stage", STAGES.index(name))
+
     try:
         try:
             job.output.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OutputError(f"{job.output.parent}: cannot create: {exc.strerror}") from exc
-        result = annotate_log(job.input, job.output, job.params, job.options, progress, expected)
+        result = annotate_log(
+            job.input, job.output, job.params, job.options, progress, expected, stage
+        )
     except DoseqslamError as exc:
         code, kind, message = int(exc.exit_code), error_class(int(exc.exit_code)), str(exc)
     except Exception as exc:  # a bug in one log must not stop the batch

@@ -7,15 +7,25 @@ unknown: those logs are then run again one at a time in a fresh pool, so only th
 fails and the others go on. On KeyboardInterrupt (Ctrl-C, or SIGTERM via the command line)
 the workers get SIGTERM, which they turn into KeyboardInterrupt: annotate_log removes its
 temporary file, and no output appears half-written.
+
+A worker must not outlive its batch, even one killed outright (SIGKILL, the OOM killer): on
+Linux each worker asks the kernel for SIGTERM when its parent dies (PR_SET_PDEATHSIG), a
+thread of it watches the parent pid too (other systems, idle workers), and an orphaned worker
+gets ORPHAN_GRACE_S to remove its temporary file before it exits regardless.
+multiprocessing's resource tracker then goes too: it ends when the last process holding its
+pipe (the batch and its workers) is gone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import multiprocessing
 import os
 import queue
 import signal
+import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -26,32 +36,89 @@ from multiprocessing.context import SpawnContext
 from types import FrameType
 from typing import Any
 
+from ..pipeline.annotate import STAGES
 from .engine import EngineSettings, Events
 from .job import Job, Outcome, crashed_outcome, run_job
 
 POLL_S = 0.2  # how often the driver drains progress and redraws
 PROGRESS_EVERY_S = 0.25  # a worker reports frames done at most this often
 STOP_GRACE_S = 5.0  # after SIGTERM, how long a worker may take to clean up before SIGKILL
+# A worker whose batch died exits this long after it heard of it, whatever it was doing (the
+# promise: no process of ours outlives its batch by more than a second).
+ORPHAN_GRACE_S = 0.5
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PARENT_POLL_S = 0.2  # how often a worker's watcher thread checks that its batch still runs
 
-# In each worker process: the progress queue, when each log last reported, whether a log runs.
+# In each worker process: the progress queue, when each log last reported, whether a log runs,
+# the batch process that started it, whether it is stopping, and when it exits regardless.
 _queue: Any = None
 _last_report: dict[str, float] = {}
 _busy = False
+_parent_pid = 0
+_stopping = False
+_exit_timer: threading.Timer | None = None
+
+
+def _exit_terminated() -> None:
+    os._exit(128 + signal.SIGTERM)
 
 
 def _on_sigterm(signum: int, frame: FrameType | None) -> None:
-    if _busy:
+    global _stopping
+    if not _busy:
+        _exit_terminated()  # idle: nothing to clean up, and no traceback
+    if os.getppid() != _parent_pid:  # orphaned: nobody will SIGKILL us after a grace period
+        _exit_soon()
+    if not _stopping:  # a second KeyboardInterrupt could cut the first one's clean-up short
+        _stopping = True
         raise KeyboardInterrupt()  # unwinds annotate_log, which removes its temporary file
-    os._exit(128 + signal.SIGTERM)  # idle: nothing to clean up, and no traceback
 
 
-def _init_worker(progress_queue: Any) -> None:
-    global _queue
-    _queue = progress_queue
+def _exit_soon() -> None:
+    global _exit_timer
+    if _exit_timer is None:
+        _exit_timer = threading.Timer(ORPHAN_GRACE_S, _exit_terminated)
+        _exit_timer.daemon = True
+        _exit_timer.start()
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """SIGTERM when the batch process dies, from the kernel (Linux) and from a thread that
+    watches the parent pid (everywhere; also where prctl is refused, e.g. by a sandbox).
+
+    The kernel's signal follows the death of the thread that started the worker: the driver's
+    main thread (ProcessPoolExecutor spawns from `submit`), which ends only with the process.
+    It may be delivered to any thread of the worker, and an idle worker's main thread, blocked
+    reading its next job, would not run the handler: the watcher signals that thread itself."""
+    _parent_death_signal()
+    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
+    if os.getppid() != parent_pid:  # it died before prctl took effect
+        _exit_terminated()
+
+
+def _parent_death_signal() -> None:
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+
+
+def _watch_parent(parent_pid: int) -> None:
+    while os.getppid() == parent_pid:
+        time.sleep(PARENT_POLL_S)
+    main = threading.main_thread().ident
+    if main is not None:
+        signal.pthread_kill(main, signal.SIGTERM)
+
+
+def _init_worker(progress_queue: Any, parent_pid: int) -> None:
+    global _queue, _parent_pid
+    _queue, _parent_pid = progress_queue, parent_pid
     # The driver decides when to stop: Ctrl-C reaches the whole process group, but only the
     # driver acts on it (it then sends SIGTERM, which cleans up like Ctrl-C would).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
+    _die_with_parent(parent_pid)
 
 
 def _notify(key: str, kind: str, value: int | None) -> None:
@@ -106,7 +173,7 @@ class LocalEngine:
             min(size, len(waiting)),
             mp_context=context,
             initializer=_init_worker,
-            initargs=(progress_queue,),
+            initargs=(progress_queue, os.getpid()),
         )
         running: dict[Future[Outcome], Job] = {}
         try:
@@ -161,6 +228,8 @@ def _drain(progress_queue: Any, events: Events) -> None:
             return
         if kind == "expected":
             events.expected(key, value)
+        elif kind == "stage":
+            events.stage(key, STAGES[value])
         else:
             events.progress(key, value)
 

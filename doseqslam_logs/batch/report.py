@@ -56,6 +56,7 @@ class ConsoleDisplay(Display):
         self.total = self.done = self.failed = 0
         self.total_bytes = self.done_bytes = 0
         self.frames: dict[str, tuple[Job, int, int | None]] = {}  # running: done, expected
+        self.stages: dict[str, str] = {}  # running: the stage after the replay, if any
         self._drawn = False
         self._last_draw = 0.0
 
@@ -77,8 +78,13 @@ class ConsoleDisplay(Display):
         total = self.frames.get(job.key, (job, 0, None))[2]
         self.frames[job.key] = (job, done, total)
 
+    def stage(self, job: Job, name: str) -> None:
+        if name != "replay":
+            self.stages[job.key] = name
+
     def finished(self, job: Job, outcome: Outcome) -> None:
         self.frames.pop(job.key, None)
+        self.stages.pop(job.key, None)
         self.done += 1
         self.done_bytes += job.size
         self.failed += 0 if outcome.ok else 1
@@ -116,6 +122,7 @@ class ConsoleDisplay(Display):
     def _draw(self) -> None:
         logs = " | ".join(
             f"{job.name} {done}/{total if total is not None else '?'}"
+            + (f" {self.stages[job.key]}" if job.key in self.stages else "")
             for job, done, total in self.frames.values()
         )
         self.err.write(f"{CLEAR_LINE}batch: {self.overall()}" + (f" | {logs}" if logs else ""))

@@ -106,6 +106,9 @@ class _Recorder:
     def progress(self, key: str, done: int) -> None:
         self.display.progress(self.jobs[key], done)
 
+    def stage(self, key: str, name: str) -> None:
+        self.display.stage(self.jobs[key], name)
+
     def tick(self) -> None:
         self.display.tick()
 
@@ -142,6 +145,8 @@ class Display:
     def expected(self, job: Job, total: int | None) -> None: ...
 
     def progress(self, job: Job, done: int) -> None: ...
+
+    def stage(self, job: Job, name: str) -> None: ...
 
     def finished(self, job: Job, outcome: Outcome) -> None: ...
 

@@ -208,7 +208,9 @@ def run(args: argparse.Namespace) -> int:
         progress.total = total
 
     try:
-        result = annotate_log(args.log, args.output, params, options, progress, expected)
+        result = annotate_log(
+            args.log, args.output, params, options, progress, expected, progress.stage
+        )
     finally:
         progress.close()
     for line in warnings(result):

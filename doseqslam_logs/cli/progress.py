@@ -6,9 +6,16 @@ import sys
 import time
 from typing import TextIO
 
+# What each stage after the replay shows (the replay shows its frames).
+STAGE_LINES = {
+    "verify": "verifying the candidate pairs geometrically",
+    "write": "writing the output",
+}
+
 
 class Progress:
-    """`Progress(total, label)(done)` redraws at most ten times a second."""
+    """`Progress(total, label)(done)` redraws at most ten times a second; `stage(name)` puts
+    each later stage of the run on a line of its own, so that a long wait says what it is."""
 
     def __init__(self, total: int | None, label: str, stream: TextIO | None = None) -> None:
         self.total = total
@@ -17,6 +24,7 @@ class Progress:
         self.enabled = self.stream.isatty()
         self._start = time.perf_counter()
         self._last_draw = 0.0
+        self._line_open = False  # a line is drawn and not yet ended
 
     def __call__(self, done: int) -> None:
         now = time.perf_counter()
@@ -31,10 +39,24 @@ class Progress:
             text = f"{self.label} [{bar}] {done}/{self.total} frames, {rate:.0f} frames/s"
         else:
             text = f"{self.label} {done} frames, {rate:.0f} frames/s"
-        self.stream.write("\r" + text)
-        self.stream.flush()
+        self._write("\r" + text)
+
+    def stage(self, name: str) -> None:
+        if self.enabled and name in STAGE_LINES:
+            self._end_line()
+            self._write(f"{self.label}: {STAGE_LINES[name]}")
 
     def close(self) -> None:
         if self.enabled:
+            self._end_line()
+
+    def _write(self, text: str) -> None:
+        self.stream.write(text)
+        self.stream.flush()
+        self._line_open = True
+
+    def _end_line(self) -> None:
+        if self._line_open:
             self.stream.write("\n")
             self.stream.flush()
+            self._line_open = False

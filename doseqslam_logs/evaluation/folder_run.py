@@ -150,12 +150,13 @@ def evaluate_folder(
     progress: Callable[[int], None] | None = None,
     expected: Callable[[int], None] | None = None,
     max_pixels: int = DEFAULT_MAX_PIXELS,
+    stage: Callable[[str], None] | None = None,
 ) -> FolderEvaluation:
     """Replay the detector over the folder's images (natural file-name order, stamped at `fps`),
     verify its candidates, and score both against `gt` (one row per image), as
     `evaluate --images` does. params=None takes the command's defaults: the verified ones with
     verification, else the paper's. `expected(images)` is called once the folder is listed,
-    `progress(frames done)` after each frame.
+    `progress(frames done)` after each frame, `stage("replay" | "verify")` as each begins.
 
     Raises SourceError (no images, or one that cannot be decoded), ImageDecodeError (an
     image over `max_pixels`, refused from its header), GroundTruthError (unreadable ground
@@ -173,7 +174,11 @@ def evaluate_folder(
         )
     if expected is not None:
         expected(len(files))
+    if stage is not None:
+        stage("replay")
     result = replay(folder_frames(images, fps, max_pixels), make_detector(params), progress)
+    if stage is not None and verification is not None:
+        stage("verify")
     checked = (
         None
         if verification is None

@@ -16,7 +16,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from .. import __version__
+from .. import __version__, waiting
 from ..annotations.records import FrameTimes, RunMetadata
 from ..detector import Parameters, make_detector
 from ..errors import (
@@ -61,6 +61,15 @@ from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
 HASH_BLOCK = 1 << 20
+
+# The stages of a run, as `annotate_log(stage=...)` announces them when each begins.
+STAGES = ("replay", "verify", "write")
+StageCallback = Callable[[str], None]
+
+
+def _announce(stage: StageCallback | None, name: str) -> None:
+    if stage is not None:
+        stage(name)
 
 
 @dataclass(frozen=True)
@@ -328,6 +337,7 @@ def annotate_log(
     options: AnnotateOptions | None = None,
     progress: Callable[[int], None] | None = None,
     expected: Callable[[int | None], None] | None = None,
+    stage: StageCallback | None = None,
 ) -> AnnotateResult:
     """Replay the detector over the log's camera topic and write the annotated MCAP.
 
@@ -337,7 +347,8 @@ def annotate_log(
     `annotate --no-verify`. Parameters given are used as they are.
 
     `progress(frames done)` is called after each frame, `expected(image messages or None)`
-    once the topic is known. The input is only read; the output appears whole or not at all.
+    once the topic is known, `stage(name)` as each of STAGES begins ("verify" only with
+    verification on). The input is only read; the output appears whole or not at all.
 
     Raises SourceError / NoCameraError (input), ImageDecodeError / TimestampError (a frame
     with on_error="fail"; ImageDecodeError also when not one image could be decoded),
@@ -351,7 +362,7 @@ def annotate_log(
     if log.exists():
         refuse_same_file(log, output)
     if not (options.recover and is_mcap_file(log)):
-        return _annotate(log, log, output, params, options, progress, expected, None)
+        return _annotate(log, log, output, params, options, (progress, expected, stage), None)
     with scratch_file(output) as repaired:
         try:
             with repaired.open("wb") as stream:
@@ -366,7 +377,8 @@ def annotate_log(
                 f"{log}: nothing to recover: not one complete message ({report.describe()})"
             )
         try:
-            return _annotate(repaired, log, output, params, options, progress, expected, report)
+            callbacks = (progress, expected, stage)
+            return _annotate(repaired, log, output, params, options, callbacks, report)
         except DoseqslamError as exc:
             # Messages about the recovered copy are about the log, for whoever reads them.
             exc.args = (str(exc).replace(str(repaired), str(log)), *exc.args[1:])
@@ -382,17 +394,22 @@ def _window(options: AnnotateOptions) -> str:
     return f" with log time in [{start}, {end}) (-S/-E)"
 
 
+_Callbacks = tuple[
+    Callable[[int], None] | None, Callable[[int | None], None] | None, StageCallback | None
+]
+
+
 def _annotate(
     read_path: Path,
     log: Path,
     output: Path,
     params: Parameters,
     options: AnnotateOptions,
-    progress: Callable[[int], None] | None,
-    expected: Callable[[int | None], None] | None,
+    callbacks: _Callbacks,
     recovery: SalvageReport | None,
 ) -> AnnotateResult:
     """annotate_log on `read_path`: the log itself, or the copy that --recover made of it."""
+    progress, expected, stage = callbacks
     digest = _hash_in_background(log)
     counts = FrameCounts()
     recorder = _TimesRecorder()
@@ -411,6 +428,7 @@ def _annotate(
         frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
         try:
             detector = make_detector(params)
+            _announce(stage, "replay")
             result = replay(recorder(frames), detector, progress, options.workers)
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
@@ -418,8 +436,10 @@ def _annotate(
     count_missing(counts, promise, log, topic)
     refuse_no_frame(counts, recovery, log, topic, _window(options))
     frame_times = recorder.frame_times()
+    if options.verification is not None:
+        _announce(stage, "verify")
     verification = verify_decisions(read_path, topic, result, frame_times, options)
-    sha256 = digest.result()
+    sha256 = waiting.result(digest)
     metadata = run_metadata(
         params, result, counts, log, sha256, topic, options, recovery, promise, unattributed
     )
@@ -433,6 +453,7 @@ def _annotate(
         metadata.to_entries(),
         None if verification is None else verification.decisions,
     )
+    _announce(stage, "write")
     written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
     return AnnotateResult(
         log,

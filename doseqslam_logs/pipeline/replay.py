@@ -16,6 +16,7 @@ from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+from .. import waiting
 from ..detector import Detector, PreparedFrame, SequenceDecision
 from ..sources.frame import Frame
 
@@ -134,7 +135,7 @@ class _Reader:
         """The (timestamp, prepare future) pairs in order; raises what iterating raised."""
         try:
             while True:
-                item = self._queue.get()
+                item = waiting.get(self._queue)  # hears Ctrl-C and SIGTERM while it waits
                 if isinstance(item, _End):
                     if item.error is not None:
                         raise item.error
@@ -161,7 +162,7 @@ def prepared_frames(
         items = _Reader(frames, detector, pool, 2 * workers, lookahead).items()
         try:
             for timestamp_ns, future in items:
-                yield timestamp_ns, future.result()
+                yield timestamp_ns, waiting.result(future)
         finally:
             items.close()  # stops the reader thread before the pool shuts down
 

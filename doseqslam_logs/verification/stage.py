@@ -59,6 +59,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field, fields
 
+from .. import waiting
 from ..detector.events import Candidate, SequenceDecision
 from .geometry import (
     FrameFeatures,
@@ -89,6 +90,12 @@ SKIPPED_REASONS = (SKIPPED_REASON, GIVEN_UP_REASON)
 GIVE_UP_AFTER = 2
 # A window is searched on every (COARSE_GRID * s)-th frame first, then finer (module docstring).
 COARSE_GRID = 2
+
+
+class Cancelled(Exception):
+    """The stage was told to stop (Ctrl-C or SIGTERM on the main thread): raised inside a
+    verification thread at its next frame pair or frame load, so that it ends in milliseconds
+    instead of finishing the decision, or the whole stage, first."""
 
 
 @dataclass(frozen=True)
@@ -210,6 +217,8 @@ class Verifier:
     intrinsics: Intrinsics | None = None
     cache_bytes: int = DEFAULT_CACHE_BYTES
     stats: VerificationStats = field(default_factory=VerificationStats)
+    # Set by whoever runs the stage to stop it: checked before every frame pair and load.
+    cancel: threading.Event = field(default_factory=threading.Event)
 
     def __post_init__(self) -> None:
         self._cache = FeatureCache(self.cache_bytes)
@@ -413,12 +422,17 @@ class Verifier:
         self, query: FrameFeatures, frames: Sequence[int], features: dict[int, FrameFeatures]
     ) -> list[tuple[int, Verdict]]:
         start = time.perf_counter()
-        verdicts = [
-            (m, verify_pair(query, features[m], self.params, self.intrinsics)) for m in frames
-        ]
+        verdicts = []
+        for m in frames:
+            self._check_cancelled()
+            verdicts.append((m, verify_pair(query, features[m], self.params, self.intrinsics)))
         self.stats.pairs_s += time.perf_counter() - start
         self.stats.pairs += len(verdicts)
         return verdicts
+
+    def _check_cancelled(self) -> None:
+        if self.cancel.is_set():
+            raise Cancelled("verification stopped")
 
     def _features(self, indices: list[int]) -> dict[int, FrameFeatures]:
         """Features of these frames: from the cache, the rest loaded in one call."""
@@ -438,6 +452,7 @@ class Verifier:
         loaded: dict[int, FrameFeatures] = {}
         start, extracting = time.perf_counter(), 0.0
         for index, gray in self.load_frames(indices):
+            self._check_cancelled()
             extract_start = time.perf_counter()
             loaded[index] = extract_features(gray, self.params)
             extracting += time.perf_counter() - extract_start
@@ -471,21 +486,24 @@ def verify_in_threads(
     workers = max(1, workers)
     results: list[VerifiedDecision | None] = [None] * len(decisions)
     stats = VerificationStats()
-    lock, failed = threading.Lock(), threading.Event()
+    lock, stop = threading.Lock(), threading.Event()
     order = iter(range(len(decisions)))
 
     def work() -> None:
         with open_loader() as loader:
-            verifier = Verifier(params, loader, intrinsics, cache_bytes // workers)
+            verifier = Verifier(params, loader, intrinsics, cache_bytes // workers, cancel=stop)
             try:
-                while not failed.is_set():
+                while not stop.is_set():
                     with lock:
                         index = next(order, None)
                     if index is None:
                         break
                     results[index] = verifier.verify(decisions[index])
+            except Cancelled:
+                pass  # stopped by another thread's error or the main thread's interrupt: that
+                # is what gets raised, not this
             except BaseException:
-                failed.set()  # the other threads stop at their next decision
+                stop.set()  # the other threads stop at their next frame pair
                 raise
             finally:
                 with lock:
@@ -495,8 +513,17 @@ def verify_in_threads(
         work()
     else:
         with ThreadPoolExecutor(workers, thread_name_prefix="verify") as pool:
-            for future in [pool.submit(work) for _ in range(workers)]:
-                future.result()
+            try:
+                futures = [pool.submit(work) for _ in range(workers)]
+                for future in futures:
+                    waiting.result(future)  # not a bare result(): it would not hear signals
+            finally:
+                # A KeyboardInterrupt (Ctrl-C, SIGTERM) lands here on the main thread: the
+                # threads stop at their next frame pair, so neither the pool's shutdown nor
+                # the interpreter's exit waits for the rest of the stage (minutes on a long
+                # log). Also when it lands in submit(): a thread started there is not yet
+                # one the pool's shutdown joins.
+                stop.set()
     done = [result for result in results if result is not None]
     assert len(done) == len(decisions)
     return done, stats
