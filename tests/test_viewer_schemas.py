@@ -1,11 +1,13 @@
 """Issue #19: the JSON schemas use only what Foxglove's and Lichtblick's `parseJsonSchema`
 supports, NaN floats are omitted (NaN is not JSON), and logs written with the previous
-schemas ($ref times, `["number", "null"]` floats written as null) still read back the same."""
+schemas ($ref times, `["number", "null"]` floats written as null) still read back the same.
+The ros1-profile output, which rosbags cannot open, converts to a .bag that it reads."""
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -13,13 +15,20 @@ from typing import Any
 import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
+from rosbags.highlevel import AnyReader, AnyReaderError
 from test_sinks import check_json_schema, make_annotations, write_json_mcap
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.annotations.records import LOOP_CLOSURE, SEQUENCE, LoopClosureRecord
 from doseqslam_logs.annotations.schema_files import read_schema
+from doseqslam_logs.cli.main import main
 from doseqslam_logs.sinks.encoders import JsonEncoder
 from doseqslam_logs.sinks.mcap_writer import write_annotated_mcap
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tools"))
+
+import ros1_mcap_to_bag  # noqa: E402
 
 NAMES = ("LoopClosure", "Sequence")
 OURS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
@@ -158,6 +167,34 @@ def test_a_log_written_with_the_previous_schemas_reads_back_the_same(tmp_path: P
     assert before.frame_times and now.frame_times
     assert before.frame_times.to_json() == now.frame_times.to_json()
     assert any(math.isnan(s.best_score) for s in now.sequences)
+
+
+def test_the_ros1_output_converts_to_a_bag_that_rosbags_reads(tmp_path: Path) -> None:
+    output, bag = tmp_path / "annotated.mcap", tmp_path / "annotated.bag"
+    assert main(["annotate", str(REPO / "sample_logs" / "drive_loops.bag"), "-o", str(output),
+                 "--no-verify"]) == 0  # fmt: skip
+    with pytest.raises(AnyReaderError, match="Profile is not ros2"), AnyReader([output]):
+        pass  # what rosbags, rosbags-convert and evo say: README.md says so, and what to do
+    ours = read_annotations(output).loop_closures
+    assert ros1_mcap_to_bag.main([str(output), str(bag)]) == 0
+    with AnyReader([bag]) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        assert {"/camera/image/compressed", *OURS} <= set(topics)
+        closures = [reader.deserialize(raw, c.msgtype)
+                    for c, _, raw in reader.messages([topics[LOOP_CLOSURE.topic]])]  # fmt: skip
+    assert [(m.query_index, m.match_index) for m in closures] == [
+        (lc.query.index, lc.match.index) for lc in ours
+    ]
+    written = bag.read_bytes()
+    assert ros1_mcap_to_bag.main([str(output), str(bag)]) == 1  # never replaces a file
+    assert bag.read_bytes() == written
+
+
+def test_the_bag_conversion_refuses_a_log_that_is_not_ros1(tmp_path: Path) -> None:
+    source, new = tmp_path / "log.mcap", tmp_path / "new.mcap"
+    write_annotated_mcap(source, new, make_annotations(write_json_mcap(source, "foxglove")))
+    assert ros1_mcap_to_bag.main([str(new), str(tmp_path / "out.bag")]) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.mcap", "new.mcap"]
 
 
 def _schemas_of(path: Path) -> list[Any]:
