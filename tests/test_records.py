@@ -59,7 +59,7 @@ def test_a_loop_closure_of_an_older_version_reads_as_not_recorded() -> None:
     assert old.matched == old.match and old.proposal_match_index == old.match.index
     assert not old.has_relative_pose and math.isnan(old.rotation_deg)
     with pytest.raises(KeyError):
-        LoopClosureRecord.from_message({k: v for k, v in first.items() if k != "difference"})
+        LoopClosureRecord.from_message({k: v for k, v in first.items() if k != "sequence_id"})
 
 
 def test_a_sequence_of_an_older_version_reads_as_not_recorded() -> None:

@@ -3,7 +3,9 @@
 `LoopClosureRecord` and `SequenceRecord` carry the fields of the definitions in `schemas/`
 (`LoopClosure`, `Sequence`), in the same order; `to_message` gives the plain form the encoders
 take (times as `{"sec": int, "nsec": int}`, arrays as lists, NaN for a missing float) and
-`from_message` reads it back, filling the fields that logs annotated by older versions lack.
+`from_message` reads it back, filling the fields that logs annotated by older versions lack;
+a float that is absent or null reads as NaN (the JSON profile omits NaN, older versions wrote
+null).
 `RunMetadata` is the `doseqslam` metadata record and `FrameTimes` the frame-times attachment.
 `annotations.writer` builds the records from the detector's decisions; `annotations.reader`
 reads them from a file.
@@ -162,9 +164,14 @@ def time_ns(value: Mapping[str, Any]) -> int:
 
 
 def optional_float(value: Any) -> float:
-    """None becomes NaN, the documented "missing" value of every float field (the JSON
-    profile writes NaN as null, so it reads back as None too)."""
+    """None becomes NaN, the documented "missing" value of every float field (JSON-profile
+    logs annotated before the schemas dropped type arrays wrote NaN as null)."""
     return math.nan if value is None else float(value)
+
+
+def float_field(message: Mapping[str, Any], name: str) -> float:
+    """A float field; NaN when absent (the JSON profile omits NaN: it is not JSON)."""
+    return optional_float(message.get(name))
 
 
 def _floats(values: Iterable[Any]) -> tuple[float, ...]:
@@ -311,17 +318,17 @@ class LoopClosureRecord:
         return cls(
             query=FrameRef.from_message(message, "query"),
             match=FrameRef.from_message(message, "match"),
-            difference=optional_float(message["difference"]),
+            difference=float_field(message, "difference"),
             sequence_id=int(message["sequence_id"]),
             sequence_first_index=int(message["sequence_first_index"]),
             sequence_last_index=int(message["sequence_last_index"]),
             match_first_index=int(message["match_first_index"]),
             match_last_index=int(message["match_last_index"]),
-            gamma=optional_float(message["gamma"]),
-            gamma_previous=optional_float(message["gamma_previous"]),
-            gamma_next=optional_float(message["gamma_next"]),
-            f=optional_float(message["f"]),
-            threshold=optional_float(message["threshold"]),
+            gamma=float_field(message, "gamma"),
+            gamma_previous=float_field(message, "gamma_previous"),
+            gamma_next=float_field(message, "gamma_next"),
+            f=float_field(message, "f"),
+            threshold=float_field(message, "threshold"),
             method=str(message["method"]),
             parameters_hash=str(message["parameters_hash"]),
             verification=str(get("verification", NOT_RECORDED)),
@@ -434,18 +441,18 @@ class SequenceRecord:
             database_size=int(message["database_size"]),
             has_candidate=bool(message["has_candidate"]),
             best_start=int(message["best_start"]),
-            best_velocity=optional_float(message["best_velocity"]),
-            best_score=optional_float(message["best_score"]),
-            second_score=optional_float(message["second_score"]),
-            gamma=optional_float(message["gamma"]),
-            gamma_previous=optional_float(message["gamma_previous"]),
-            gamma_next=optional_float(message["gamma_next"]),
-            f=optional_float(message["f"]),
-            threshold=optional_float(message["threshold"]),
+            best_velocity=float_field(message, "best_velocity"),
+            best_score=float_field(message, "best_score"),
+            second_score=float_field(message, "second_score"),
+            gamma=float_field(message, "gamma"),
+            gamma_previous=float_field(message, "gamma_previous"),
+            gamma_next=float_field(message, "gamma_next"),
+            f=float_field(message, "f"),
+            threshold=float_field(message, "threshold"),
             accepted=bool(message["accepted"]),
             candidate_query_indices=_ints(message["candidate_query_indices"]),
             candidate_match_indices=_ints(message["candidate_match_indices"]),
-            candidate_differences=_floats(message["candidate_differences"]),
+            candidate_differences=_candidate_differences(message),
             method=str(message["method"]),
             parameters_hash=str(message["parameters_hash"]),
             verification=str(get("verification", NOT_RECORDED)),
@@ -453,6 +460,13 @@ class SequenceRecord:
             accepted_pairs=int(get("accepted_pairs", 0)),
             max_inliers=int(get("max_inliers", 0)),
         )
+
+
+def _candidate_differences(message: Mapping[str, Any]) -> tuple[float, ...]:
+    """NaN for every candidate when the JSON profile omitted the array (it held a NaN)."""
+    if "candidate_differences" in message:
+        return _floats(message["candidate_differences"])
+    return (math.nan,) * len(message["candidate_query_indices"])
 
 
 def _optional_int(text: str) -> int | None:

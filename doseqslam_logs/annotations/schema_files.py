@@ -13,16 +13,19 @@ else:  # pragma: no cover - Python 3.10
 
 
 def schema_dir() -> Traversable:
-    """The folder of message definitions.
+    """The folder of message definitions that belongs with this copy of the code.
 
-    Installed, `schemas/` is the subpackage `doseqslam_logs.schemas`; run from a source checkout
-    (e.g. pytest from the repository root, where the checkout shadows the install) it is the
-    top-level `schemas/` folder beside the package.
+    Installed, `schemas/` is the subpackage `doseqslam_logs.schemas` inside the package; in a
+    source checkout it is the top-level `schemas/` folder beside the package. Both are looked
+    for beside this file first: an editable install maps `doseqslam_logs.schemas` to the
+    checkout it was made from, which would give another checkout's definitions to code run
+    from this one (PYTHONPATH=checkout).
     """
-    try:
-        return importlib.resources.files("doseqslam_logs.schemas")
-    except ModuleNotFoundError:
-        return Path(__file__).resolve().parents[2] / "schemas"
+    package = Path(__file__).resolve().parents[1]
+    for folder in (package / "schemas", package.parent / "schemas"):
+        if (folder / "json" / "LoopClosure.json").is_file():
+            return folder
+    return importlib.resources.files("doseqslam_logs.schemas")
 
 
 def read_schema(name: str) -> str:

@@ -200,20 +200,27 @@ class JsonEncoder(MessageEncoder):
     def encode(self, message_type: MessageType, fields: Mapping[str, Any]) -> bytes:
         check_fields(message_type.name, self.properties[message_type.name], fields)
         ordered = {name: fields[name] for name in self.properties[message_type.name]}
-        # allow_nan=False: NaN is not JSON; json_safe already turned it into null.
-        text = json.dumps(json_safe(ordered), allow_nan=False, separators=(",", ":"))
+        # allow_nan=False: NaN is not JSON; without_nan already left it out.
+        text = json.dumps(without_nan(ordered), allow_nan=False, separators=(",", ":"))
         return text.encode()
 
 
-def json_safe(value: Any) -> Any:
-    """The value with every non-finite float replaced by None (JSON null)."""
+def without_nan(message: Mapping[str, Any]) -> dict[str, Any]:
+    """The message without its NaN floats, nor its float arrays that hold one.
+
+    NaN is not JSON, and a `null` would need a second type in the schema, which Foxglove's
+    and Lichtblick's JSON-schema parser refuse: the schemas document an absent float as NaN,
+    and `records` reads it back so.
+    """
+    return {key: value for key, value in message.items() if not _holds_nan(value)}
+
+
+def _holds_nan(value: Any) -> bool:
     if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, Mapping):
-        return {key: json_safe(item) for key, item in value.items()}
+        return not math.isfinite(value)
     if isinstance(value, (list, tuple)):
-        return [json_safe(item) for item in value]
-    return value
+        return any(isinstance(item, float) and not math.isfinite(item) for item in value)
+    return False
 
 
 ENCODERS: dict[str, type[MessageEncoder]] = {

@@ -1,0 +1,81 @@
+"""Issue #19: every output profile opens in a real viewer, the Foxglove Studio 1.48 web app
+(npm @foxglove/studio-base's prebuilt bundle) in headless Chromium, with our topics listed
+and no problem reported for them.
+
+Needs node, Chromium and the npm packages of tests/viewer/foxglove_check.cjs in
+$DOSEQSLAM_VIEWER_MODULES (default ~/.cache/doseqslam-viewer); .ci/run installs them, and the
+test is skipped with the reason when one is missing. Screenshots of every log (its Topics and
+Problems tabs, and a loop closure in the Raw Messages panel) go to $DOSEQSLAM_VIEWER_SHOTS
+when it is set (else into tmp_path).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from doseqslam_logs.cli.main import main
+
+REPO = Path(__file__).resolve().parents[1]
+DRIVER = REPO / "tests" / "viewer" / "foxglove_check.cjs"
+MODULES = Path(
+    os.environ.get("DOSEQSLAM_VIEWER_MODULES", Path.home() / ".cache" / "doseqslam-viewer")
+)
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+NEEDED = ("playwright-core", "react", "react-dom", "@foxglove/studio-base")
+# One input per output profile: ROS 2, ROS 1 (a .bag becomes a ros1-profile MCAP) and JSON
+# (our channels of a foxglove-profile input with protobuf images).
+PROFILES = {
+    "ros2": "drive_loops.ros2.mcap",
+    "ros1": "drive_loops.bag",
+    "json": "drive_loops.foxglove.mcap",
+}
+OUR_TOPICS = ("/doseqslam/loop_closures", "/doseqslam/sequences")
+
+
+def _missing() -> str:
+    """Why the viewer cannot run here ("" when it can)."""
+    if shutil.which("node") is None:
+        return "node is not installed"
+    if not Path(CHROMIUM).is_file():
+        return f"no Chromium at {CHROMIUM} (apt-get install chromium)"
+    absent = [name for name in NEEDED if not (MODULES / "node_modules" / name).is_dir()]
+    if absent:
+        return f"npm packages {absent} are not in {MODULES} (see .ci/run)"
+    return ""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(bool(_missing()), reason=_missing() or "ready")
+def test_every_output_profile_opens_in_foxglove_with_no_problem(tmp_path: Path) -> None:
+    outputs = []
+    for profile, name in PROFILES.items():
+        output = tmp_path / f"{profile}.annotated.mcap"
+        # --no-verify: the same schemas and channels, in a second instead of ten.
+        assert main(["annotate", str(REPO / "sample_logs" / name), "-o", str(output),
+                     "--no-verify"]) == 0  # fmt: skip
+        outputs.append(output)
+    shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    run = subprocess.run(
+        ["node", str(DRIVER), str(MODULES), CHROMIUM, str(shots), *map(str, outputs)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    seen = [json.loads(line) for line in run.stdout.splitlines()]
+    assert [Path(s["log"]).name for s in seen] == [o.name for o in outputs]
+    for result in seen:
+        assert set(OUR_TOPICS) <= set(result["topics"]), result
+        ours = [line for line in result["problems"] if "/doseqslam/" in line]
+        assert ours == [], result  # a problem names its topic: "Error in topic /doseqslam/..."
+        assert "No problems found" in result["problems"], result
+        assert result["errors"] == [], result
+        # The Raw Messages panel decoded a loop closure, its times as {sec, nsec}.
+        assert any(line.startswith("query_log_time") for line in result["message"]), result
+        for tab in ("topics", "problems", "message"):
+            assert (shots / f"{Path(result['log']).name}.{tab}.png").stat().st_size > 0
