@@ -31,7 +31,7 @@ from doseqslam_logs.verification import (
     Verifier,
     verified_detector_parameters,
 )
-from doseqslam_logs.verification.stage import FeatureCache
+from doseqslam_logs.verification.stage import WALK_RADII, FeatureCache
 
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 
@@ -60,14 +60,17 @@ def test_each_candidate_is_recorded_with_its_verdict(verified_log) -> None:
     assert log.reported_loop_closures == accepted
     assert all(lc.inliers >= DEFAULT_VERIFICATION.min_inliers for lc in accepted)
     assert all(lc.rejection_reason for lc in log.loop_closures if lc not in accepted)
-    r = DEFAULT_VERIFICATION.refine_radius
-    for lc in log.loop_closures:  # the refined match is near the match of its proposal
-        assert abs(lc.matched.index - lc.proposal_match_index) <= r
+    # The refined match is near the match of its proposal: within its window, or as far as a
+    # walk past it may go (Verifier._reach).
+    reach = (1 + WALK_RADII) * DEFAULT_VERIFICATION.refine_radius
+    for lc in log.loop_closures:
+        assert abs(lc.matched.index - lc.proposal_match_index) <= reach
         assert (lc.proposal == 0) == (lc.proposal_match_index == lc.match.index)
         assert lc.proposal == 0 or lc.verification == "accepted"
     # Some pairs were found on a next-best trajectory of their sequence, far from the match.
     alternative = [lc for lc in accepted if lc.proposal > 0]
     assert alternative
+    r = DEFAULT_VERIFICATION.refine_radius
     assert all(abs(lc.matched.index - lc.match.index) > r for lc in alternative)
     assert log.metadata.verification == "on"
     assert log.metadata.intrinsics_source == "/camera/camera_info"
@@ -160,9 +163,10 @@ def test_verified_figures_on_rtabmap_reach_the_target(shared_data) -> None:
 
 def test_next_best_trajectories_add_true_pairs_and_no_false_one() -> None:
     """drive_loops: the same decisions with and without alternatives (they only add
-    information); verified, the alternatives find 6 more true pairs (50 against 44) and no
-    false one (94 against 80, both with 3 false ones, before bracketing and the rotation
-    limit)."""
+    information); verified, the alternatives find 2 more true pairs (50 against 48; 50 against
+    44 before a check walks past its window to bracket the match, which finds most of what
+    they found) and no false one (94 against 80, both with 3 false ones, before bracketing and
+    the rotation limit)."""
     stamped, intrinsics = _sample_frames(LOOPS)
     gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
     figures = {}
@@ -178,7 +182,7 @@ def test_next_best_trajectories_add_true_pairs_and_no_false_one() -> None:
     assert [replace(d, alternatives=()) for d in with_alternatives[0]] == plain[0]
     assert all(not d.alternatives for d in plain[0])
     assert any(d.alternatives for d in with_alternatives[0])
-    assert with_alternatives[1].tp >= plain[1].tp + 5
+    assert with_alternatives[1].tp >= plain[1].tp + 2
     assert with_alternatives[1].fp == plain[1].fp == 0
     for item in with_alternatives[2]:  # each accepted pair lies on the trajectory it names
         for z, check in enumerate(item.checks):

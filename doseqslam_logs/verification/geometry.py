@@ -284,6 +284,16 @@ def bracketed_match(
     return run[i] if abs(ahead[i]) < abs(ahead[i + 1]) else run[i + 1]
 
 
+def side_of_query(verdict: Verdict) -> int:
+    """Where the query's place lies along the match's trajectory, from one verified frame: +1
+    at later frames (the match camera is behind the query, z < 0: `bracketed_match`'s sign
+    rule), -1 at earlier ones, 0 for a verdict that did not pass with a relative pose. Assumes
+    a forward-looking camera driven the same way, as `bracketed_match` does."""
+    if not _has_pose(verdict):
+        return 0
+    return 1 if _ahead(verdict) < 0 else -1
+
+
 def _has_pose(verdict: Verdict) -> bool:
     return verdict.accepted and verdict.translation_direction is not None
 

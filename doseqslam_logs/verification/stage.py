@@ -15,6 +15,13 @@ from behind the query to ahead of it, and the nearer frame of that sign change b
 refined match; else the pair is rejected "not bracketed" (`geometry.bracketed_match`: the
 same facades seen from several metres away overlap, but are not the same place); a pair
 whose relative rotation exceeds `max_rotation_deg` is rejected by the check itself.
+When every verified frame of the window sees the match camera on one side of the query, the
+query's place lies beyond the window on the other: the check walks that way (`_walk`), a
+stride at a time while the frames pass with a pose, up to WALK_RADII * r past the window, and
+brackets the match where the side changes. Next checks of the sequence follow that offset.
+On the first 20 minutes of the 10 Hz hour it gave 811 true pairs instead of 665, a true loop
+closure in 66.3 % of the seconds that revisit a place instead of 56.6 %, no false pair, for
+16 % fewer frame pairs checked (docs/results.md).
 
 When a pair fails and the detector recorded next-best trajectories of the sequence
 (`SequenceDecision.alternatives`), the same query is checked against each of them in turn, at
@@ -62,6 +69,7 @@ from dataclasses import dataclass, field, fields
 from .. import waiting
 from ..detector.events import Candidate, SequenceDecision
 from .geometry import (
+    NOT_BRACKETED,
     FrameFeatures,
     GrayImage,
     Intrinsics,
@@ -69,6 +77,7 @@ from .geometry import (
     best_verdict,
     bracketed_match,
     extract_features,
+    side_of_query,
     verify_pair,
 )
 from .params import VerificationParameters
@@ -90,6 +99,9 @@ SKIPPED_REASONS = (SKIPPED_REASON, GIVEN_UP_REASON)
 GIVE_UP_AFTER = 2
 # A window is searched on every (COARSE_GRID * s)-th frame first, then finer (module docstring).
 COARSE_GRID = 2
+# A check that passes but is not bracketed walks on at most this many refine_radius past its
+# window, towards the side where its frames say the query's place lies (`Verifier._walk`).
+WALK_RADII = 2
 
 
 class Cancelled(Exception):
@@ -336,26 +348,38 @@ class Verifier:
     ) -> PairCheck:
         """One candidate: its window searched exhaustively (stride 1), or tracked from the
         previous check of its sequence and, failing that, coarse to fine (module docstring).
-        `seen` collects the query's verdict against each frame, so each pair is checked once."""
-        window = self._window(candidate.match_index, database_size)
+        A tracked check's window is centred where the previous one's offset puts it, which a
+        walk (`_walk`) may have moved past the candidate's own window. `seen` collects the
+        query's verdict against each frame, so each pair is checked once."""
+        match = candidate.match_index
+        if previous is not None:
+            offset = previous.refined_match_index - previous.candidate.match_index
+            bounds = self._reach(match, database_size)
+            match = min(max(match + offset, bounds.start), bounds.stop - 1)
+        window = self._window(match, database_size)
         query = features.get(candidate.query_index)
         if query is None:  # stride > 1: loaded when checked (a given-up sequence needs fewer)
             query = self._features([candidate.query_index])[candidate.query_index]
-        match = candidate.match_index
 
         def best(frames: Iterable[int]) -> tuple[int, Verdict]:
             self._check_frames(query, [m for m in frames if m in window], seen)
             return best_verdict([(m, v) for m, v in seen.items() if m in window], match)
 
+        def placed(refined: int, verdict: Verdict) -> PairCheck:
+            refined, verdict = self._bracketed(window, seen, refined, verdict)
+            if verdict.reason == NOT_BRACKETED:
+                bounds = self._reach(candidate.match_index, database_size)
+                refined, verdict = self._walk(query, window, seen, refined, stride, bounds)
+            return PairCheck(candidate, refined, verdict)
+
         if stride == 1:
-            return PairCheck(candidate, *self._bracketed(window, seen, *best(window)))
-        if previous is not None:
-            offset = previous.refined_match_index - previous.candidate.match_index
-            centre = match + offset  # and the grid frames on either side (likely cached)
-            tracked = [m for m in range(centre - stride + 1, centre + stride) if m % stride == 0]
-            refined, verdict = self._bracketed(window, seen, *best([centre, *tracked]))
-            if verdict.accepted or (self._hopeless(verdict) and self._hopeless(previous.verdict)):
-                return PairCheck(candidate, refined, verdict)
+            return placed(*best(window))
+        if previous is not None:  # the frame at the previous offset, and the grid beside it
+            tracked = [m for m in range(match - stride + 1, match + stride) if m % stride == 0]
+            check = placed(*best([match, *tracked]))
+            hopeless = self._hopeless(check.verdict) and self._hopeless(previous.verdict)
+            if check.accepted or hopeless:
+                return check
         # The grids are fixed in frame indices (not relative to the match), so the next checked
         # candidates, whose windows overlap this one, find most of their frames in the cache.
         coarse = COARSE_GRID * stride
@@ -365,7 +389,41 @@ class Verifier:
                 break
             near = range(refined - reach, refined + reach + 1)
             refined, verdict = best(m for m in near if m % spacing == 0)
-        return PairCheck(candidate, *self._bracketed(window, seen, refined, verdict))
+        return placed(refined, verdict)
+
+    def _walk(
+        self,
+        query: FrameFeatures,
+        window: range,
+        seen: dict[int, Verdict],
+        refined: int,
+        step: int,
+        bounds: range,
+    ) -> tuple[int, Verdict]:
+        """A check that passed but was not bracketed: every verified frame saw the match camera
+        on one side of the query, so the query's place lies beyond the window on the other
+        (`side_of_query`). Steps that way from the refined match, `step` frames at a time,
+        while the frames pass with a relative pose, until one lies on the other side; the
+        frames between the last two are then checked and the match bracketed among them. Stops,
+        not bracketed, at a frame that fails or outside `bounds` (`_reach`)."""
+        rejected = (refined, seen[refined])
+        direction = side_of_query(seen[refined])
+        at = refined
+        while direction and at + step * direction in bounds:
+            ahead = at + step * direction
+            self._check_frames(query, [ahead], seen)
+            side = side_of_query(seen[ahead])
+            if side == 0:
+                break
+            if side != direction:  # the place lies between `at` and `ahead`
+                between = range(min(at, ahead), max(at, ahead) + 1)
+                self._check_frames(query, between, seen)
+                span = range(min(window.start, between.start), max(window.stop, between.stop))
+                nearest = best_verdict([(m, seen[m]) for m in between], at)
+                return self._bracketed(span, seen, *nearest)
+            at = ahead
+        frame, verdict = rejected
+        return frame, dataclasses.replace(verdict, accepted=False, reason=NOT_BRACKETED)
 
     def _try_alternatives(
         self,
@@ -412,6 +470,13 @@ class Verifier:
         new = [m for m in dict.fromkeys(frames) if m not in seen]  # each frame once
         if new:
             seen.update(self._verdicts(query, new, self._features(new)))
+
+    def _reach(self, match: int, database_size: int) -> range:
+        """The frames a candidate's refined match may be: its window widened by WALK_RADII *
+        refine_radius on either side, for a walk (also over tracked checks, whose windows
+        follow the previous offset), inside the sequence's database."""
+        r = (1 + WALK_RADII) * self.params.refine_radius
+        return range(max(0, match - r), min(max(database_size, match + 1), match + r + 1))
 
     def _window(self, match: int, database_size: int) -> range:
         """Frames within +-refine_radius of `match` that belong to the sequence's database."""

@@ -1,0 +1,120 @@
+"""The walk of a check that passed but was not bracketed (issue #17): every verified frame of the
+window sees the match camera on one side of the query, so the query's place lies beyond the
+window; the check steps that way while frames pass, and brackets the match where the side
+changes. The geometry here is synthetic (verify_pair replaced by a rule of the frame index), so
+each case states exactly where the place is and which frames pass.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+import pytest
+
+from doseqslam_logs.detector.events import Candidate, SequenceDecision
+from doseqslam_logs.verification import (
+    DEFAULT_VERIFICATION,
+    NOT_BRACKETED,
+    FrameFeatures,
+    Verdict,
+    stage,
+)
+from doseqslam_logs.verification.geometry import side_of_query
+from doseqslam_logs.verification.stage import WALK_RADII, Verifier
+
+R = DEFAULT_VERIFICATION.refine_radius
+QUERY, MATCH, DATABASE = 400, 100, 380
+
+
+def frames(indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
+    """A loader whose "image" of frame i holds i, for the stand-in feature extractor."""
+    for index in indices:
+        yield index, np.frombuffer(index.to_bytes(4, "little"), np.uint8).reshape(1, 4).copy()
+
+
+def features_of_frame(gray: np.ndarray, params: object) -> FrameFeatures:
+    """The frame's index as its features' `scale`: all the stand-in geometry needs."""
+    index = int.from_bytes(gray.tobytes(), "little")
+    return FrameFeatures(np.empty((0, 2), np.float32), np.empty((0, 32), np.uint8), "orb", index)
+
+
+def geometry(place: int, passing: range):
+    """verify_pair's stand-in: frames in `passing` pass with a pose, the match camera behind
+    the query before `place` (translation +z) and ahead of it from `place` on."""
+
+    def verify_pair(query, match, params, intrinsics):
+        m = int(match.scale)
+        if m not in passing:
+            return Verdict(False, 0, 40, "E", "too few matches")
+        t = (0.0, 0.0, 1.0) if m < place else (0.0, 0.0, -1.0)
+        return Verdict(True, 200 - abs(m - place), 300, "E", "accepted", (0, 0, 0, 1), 0.0, t)
+
+    return verify_pair
+
+
+@pytest.fixture(autouse=True)
+def indexed_features(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(stage, "extract_features", features_of_frame)
+
+
+def check(monkeypatch: pytest.MonkeyPatch, place: int, passing: range) -> stage.PairCheck:
+    monkeypatch.setattr(stage, "verify_pair", geometry(place, passing))
+    verifier = Verifier(DEFAULT_VERIFICATION, frames)
+    candidate = Candidate(QUERY, MATCH, QUERY * 10**9, MATCH * 10**9, 1.0)
+    decision = SequenceDecision(
+        sequence_id=0,
+        first_index=QUERY,
+        last_index=QUERY,
+        first_timestamp_ns=QUERY * 10**9,
+        last_timestamp_ns=QUERY * 10**9,
+        database_size=DATABASE,
+        best_start=MATCH,
+        best_velocity=1.0,
+        best_score=1.0,
+        second_score=2.0,
+        gamma=0.5,
+        gamma_previous=None,
+        gamma_next=None,
+        f=0.5,
+        threshold=0.99,
+        accepted=True,
+        candidates=(candidate,),
+        method="doseqslam",
+    )
+    (result,) = verifier.verify(decision).checks
+    return result
+
+
+@pytest.mark.parametrize("place", [MATCH + R + 10, MATCH - R - 10, MATCH + (1 + WALK_RADII) * R])
+def test_a_place_beyond_the_window_is_walked_to_and_bracketed(monkeypatch, place) -> None:
+    result = check(monkeypatch, place, range(0, DATABASE))
+    assert result.accepted, result.verdict.reason
+    assert result.refined_match_index in (place - 1, place)
+
+
+def test_the_walk_stops_at_a_frame_that_fails(monkeypatch) -> None:
+    place = MATCH + R + 10
+    result = check(monkeypatch, place, range(0, place - 3))  # the view is lost before the place
+    assert not result.accepted and result.verdict.reason == NOT_BRACKETED
+    assert abs(result.refined_match_index - MATCH) <= R  # the window's best, not a walked frame
+
+
+def test_the_walk_stops_at_its_reach(monkeypatch) -> None:
+    place = MATCH + (1 + WALK_RADII) * R + 2  # just past what a candidate may move
+    result = check(monkeypatch, place, range(0, DATABASE))
+    assert not result.accepted and result.verdict.reason == NOT_BRACKETED
+
+
+def test_a_bracketed_window_does_not_walk(monkeypatch) -> None:
+    result = check(monkeypatch, MATCH + 3, range(0, DATABASE))
+    assert result.accepted and result.refined_match_index in (MATCH + 2, MATCH + 3)
+
+
+def test_side_of_query_follows_the_bracketing_sign() -> None:
+    behind = Verdict(True, 50, 60, "E", "accepted", (0, 0, 0, 1), 0.0, (0.0, 0.0, 1.0))
+    ahead = Verdict(True, 50, 60, "E", "accepted", (0, 0, 0, 1), 0.0, (0.0, 0.0, -1.0))
+    assert side_of_query(behind) == 1  # the place is at later frames of the match
+    assert side_of_query(ahead) == -1
+    assert side_of_query(Verdict(False, 0, 0, "E", "too few matches")) == 0
+    assert side_of_query(Verdict(True, 50, 60, "F", "accepted")) == 0  # no pose
