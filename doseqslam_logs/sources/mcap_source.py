@@ -41,6 +41,7 @@ from doseqslam_logs.sources.base import (
     ImageMessage,
     Promise,
 )
+from doseqslam_logs.sources.chunk_limits import ChunkTooLargeError, check_chunk_size
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 from doseqslam_logs.sources.mcap_index import indexed_topic_messages
 
@@ -268,6 +269,8 @@ def in_log_time_order(records: Iterable[_Record], window: int) -> Iterator[_Reco
 def describe_read_error(exc: BaseException) -> str:
     """One line saying what is wrong with the file, from an exception of the mcap library (or
     of a decompressor, struct, ...) raised while reading it."""
+    if isinstance(exc, ChunkTooLargeError):
+        return str(exc)
     if isinstance(exc, EndOfFile):
         return "the file ends in the middle of a record: truncated?"
     if isinstance(exc, CRCValidationError):
@@ -377,6 +380,15 @@ class McapSource:
                 f"footer (recording cut short?); {RECOVER_HINT}"
             )
 
+    def _check_chunk_sizes(self) -> None:
+        """Refuse a chunk over the cap from the chunk index, before anything is decompressed
+        (without an index each chunk's own header is checked as it is read)."""
+        for chunk in self._summary.chunk_indexes if self._summary is not None else []:
+            try:
+                check_chunk_size(chunk.uncompressed_size)
+            except ChunkTooLargeError as exc:
+                raise SourceError(f"{self.path}: {exc}; {RECOVER_HINT}") from exc
+
     @property
     def summary(self) -> Summary | None:
         """The file's summary section as read when it was opened (None: cut short, damaged,
@@ -398,6 +410,7 @@ class McapSource:
             SourceError: the file is corrupt or truncated.
         """
         self._check_complete()
+        self._check_chunk_sizes()
         if self._channels is None:
             limit = max(self.size, 1)
             try:

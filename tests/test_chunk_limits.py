@@ -1,0 +1,248 @@
+"""Issue #21, the last gaps: a cap on what one MCAP chunk decompresses to, and a message record
+inside a chunk that is shorter than its header, counted.
+
+The bombs are real: a chunk of a few kB of zstd (or lz4) that claims, and decompresses to,
+4 MiB, against a cap the tests lower to 1 MiB; nothing here allocates more than that.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+import sys
+from pathlib import Path
+
+import pytest
+from mcap.data_stream import ReadDataStream
+from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.writer import CompressionType, Writer
+
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.errors import ExitCode
+from doseqslam_logs.sources import chunk_limits
+from doseqslam_logs.sources.mcap_source import McapSource
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import make_bad_inputs as bad
+
+TEST_CAP = 1 << 20
+BOMB_BYTES = 4 << 20  # what the bomb chunk really decompresses to: 4 x the test cap
+TOPIC = "/camera/image/compressed"
+
+
+@pytest.fixture(autouse=True)
+def small_cap(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(chunk_limits, "MAX_CHUNK_BYTES", TEST_CAP)
+
+
+@pytest.fixture(scope="module")
+def good_log(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("good") / "good.mcap"
+    return bad.write_log(path, bad.good_items(bad.rtabmap_jpegs(shared_data)))
+
+
+def rewrite(
+    good: Path,
+    *,
+    bomb_after: int | None = None,
+    alone: bool = True,
+    compression: CompressionType = CompressionType.ZSTD,
+    chunk_size: int = 64 * 1024,
+) -> bytes:
+    """The good log copied by mcap's Writer; with `bomb_after`, a message of BOMB_BYTES zeros
+    on the topic /padding follows that camera message, alone in its chunk (a few hundred bytes of
+    zstd) or, not `alone`, in the chunk of the camera messages around it."""
+    out = io.BytesIO()
+    writer = Writer(out, chunk_size=chunk_size, compression=compression)
+    writer.start("ros2", "test")
+    channels: dict[int, int] = {}
+    with good.open("rb") as stream:
+        for number, (schema, channel, message) in enumerate(make_reader(stream).iter_messages()):
+            if channel.id not in channels:
+                assert schema is not None
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+            if number == bomb_after:
+                if alone:
+                    writer.flush()
+                padding = writer.register_channel("/padding", "raw", 0)
+                writer.add_message(padding, message.log_time, bytes(BOMB_BYTES), message.log_time)
+                if alone:
+                    writer.flush()
+    writer.finish()
+    return out.getvalue()
+
+
+def unindexed(tmp_path: Path, data: bytes) -> Path:
+    """The log without its summary section (chunk indexes, Statistics), as `bad` writes it."""
+    indexed = tmp_path / "indexed.mcap"
+    indexed.write_bytes(data)
+    return bad.without_summary(indexed, tmp_path / "unindexed.mcap")
+
+
+def chunks(data: bytes) -> list[tuple[int, Chunk]]:
+    """(record offset, chunk) of every chunk record, walked record by record."""
+    found, position = [], 8
+    while position + 9 <= len(data):
+        opcode, length = struct.unpack_from("<BQ", data, position)
+        if opcode == 0x06:
+            found.append(
+                (position, Chunk.read(_stream(data[position + 9 : position + 9 + length])))
+            )
+        if opcode == 0x02:
+            break
+        position += 9 + length
+    return found
+
+
+def _stream(body: bytes) -> ReadDataStream:
+    return ReadDataStream(io.BytesIO(body))
+
+
+def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
+    try:
+        status = main([str(a) for a in args])
+    except SystemExit as exc:
+        status = int(exc.code or 0)
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def one_error(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("doseqslam-logs: error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.fixture
+def decompressions(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The output limit of every chunk decompression."""
+    limits: list[int] = []
+    real = chunk_limits.decompress_at_most
+
+    def spy(compression: str, data: bytes, limit: int) -> bytes:
+        limits.append(limit)
+        return real(compression, data, limit)
+
+    monkeypatch.setattr(chunk_limits, "decompress_at_most", spy)
+    return limits
+
+
+CLAIM = (
+    f"a chunk claims {BOMB_BYTES + 67} bytes uncompressed, more than the cap of {TEST_CAP} bytes"
+)
+
+
+def bomb_log(good_log: Path, tmp_path: Path, kind: str) -> Path:
+    """The bomb (zstd or lz4) in an indexed log or, "unindexed", in one without summary."""
+    compression = CompressionType.LZ4 if kind == "lz4" else CompressionType.ZSTD
+    data = rewrite(good_log, bomb_after=4, compression=compression)
+    if kind == "unindexed":
+        return unindexed(tmp_path, data)
+    path = tmp_path / "bomb.mcap"
+    path.write_bytes(data)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["zstd", "lz4", "unindexed"])
+def test_a_chunk_over_the_cap_is_refused_before_it_is_decompressed(
+    kind: str,
+    good_log: Path,
+    tmp_path: Path,
+    decompressions: list[int],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    log = bomb_log(good_log, tmp_path, kind)
+    bomb = next(
+        chunk for _, chunk in chunks(log.read_bytes()) if chunk.uncompressed_size > TEST_CAP
+    )
+    assert len(bomb.data) < 20_000  # a few hundred bytes (zstd) or kB (lz4) claim 4 MiB
+    before = log.read_bytes()
+    out = tmp_path / "out.mcap"
+    for args in (("info", log), ("annotate", log, "-o", out, "--no-verify")):
+        status, _, err = run(capsys, *args)
+        assert status == ExitCode.UNREADABLE_INPUT
+        assert CLAIM in one_error(err)
+    assert not out.exists() and log.read_bytes() == before
+    assert all(limit <= TEST_CAP + 1 for limit in decompressions), decompressions
+
+
+@pytest.mark.parametrize("kind", ["zstd", "unindexed"])
+@pytest.mark.parametrize("alone", [True, False], ids=["own chunk", "camera chunk"])
+def test_recover_drops_a_chunk_over_the_cap_and_counts_it(
+    kind: str,
+    alone: bool,
+    good_log: Path,
+    tmp_path: Path,
+    decompressions: list[int],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    data = rewrite(good_log, bomb_after=7, alone=alone)  # after chunk 1 (the channel records)
+    log = unindexed(tmp_path, data) if kind == "unindexed" else tmp_path / "bomb.mcap"
+    if kind != "unindexed":
+        log.write_bytes(data)
+    out = tmp_path / "out.mcap"
+    status, stdout, _ = run(
+        capsys, "annotate", log, "-o", out, "--no-verify", "--recover", "--json"
+    )
+    assert status == ExitCode.OK
+    summary = json.loads(stdout)
+    recovered = summary["recovered"]
+    assert recovered["oversized_chunks"] == recovered["corrupt_chunks"] == 1
+    lost_by_topic = recovered["lost_by_topic"]
+    lost = lost_by_topic.pop(TOPIC, 0)
+    # The padding message, by its index ("?" without a summary: its channel was in the chunk).
+    assert sum(lost_by_topic.values()) == 1
+    assert (lost > 0) == (not alone)  # the camera messages of the bomb's chunk, by its index
+    assert summary["frames_used"] == 12 - lost
+    assert summary["frames_skipped_by_reason"].get("lost in a corrupt chunk", 0) == lost
+    assert all(limit <= TEST_CAP + 1 for limit in decompressions), decompressions
+
+
+def test_a_chunk_that_holds_more_than_it_claims_is_not_decompressed_past_its_claim(
+    good_log: Path, tmp_path: Path, decompressions: list[int], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The bomb chunk says 1000 bytes uncompressed; its zstd frame says (and holds) 4 MiB, which
+    the mcap library's zstd call would allocate whole."""
+    data = bytearray(rewrite(good_log, bomb_after=4))
+    offset, _ = next((at, c) for at, c in chunks(bytes(data)) if c.uncompressed_size > TEST_CAP)
+    struct.pack_into("<Q", data, offset + 9 + 16, 1000)  # after start and end times
+    log = unindexed(tmp_path, bytes(data))
+    status, _, err = run(capsys, "annotate", log, "-o", tmp_path / "out.mcap", "--no-verify")
+    assert status == ExitCode.UNREADABLE_INPUT
+    assert "a chunk decompresses to more than the 1000 bytes it claims" in one_error(err)
+    assert max(decompressions) <= TEST_CAP + 1
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", ""])
+def test_decompression_stops_at_its_limit(compression: str) -> None:
+    import lz4.frame
+    import zstandard
+
+    packed = {
+        "zstd": zstandard.ZstdCompressor().compress(bytes(BOMB_BYTES)),
+        "lz4": lz4.frame.compress(bytes(BOMB_BYTES)),
+        "": bytes(BOMB_BYTES),
+    }[compression]
+    assert chunk_limits.decompress_at_most(compression, packed, 1001) == bytes(1001)
+
+
+def test_the_default_cap_is_far_above_real_chunks(shared_data: Path) -> None:
+    """Every MCAP among the real data has chunks of a few MiB at most."""
+    assert chunk_limits.MAX_CHUNK_BYTES == TEST_CAP  # the fixture
+    largest = 0
+    for path in sorted(shared_data.rglob("*.mcap")):
+        with McapSource(path) as source:
+            if source.summary is not None:
+                largest = max(
+                    [largest, *(c.uncompressed_size for c in source.summary.chunk_indexes)]
+                )
+    assert 0 < largest < 64 << 20
