@@ -11,13 +11,14 @@ import io
 import json
 import struct
 import sys
+import zlib
 from pathlib import Path
 
 import pytest
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
 from mcap.records import Chunk
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType, IndexType, Writer
 
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ExitCode
@@ -50,12 +51,13 @@ def rewrite(
     alone: bool = True,
     compression: CompressionType = CompressionType.ZSTD,
     chunk_size: int = 64 * 1024,
+    index_types: IndexType = IndexType.ALL,
 ) -> bytes:
     """The good log copied by mcap's Writer; with `bomb_after`, a message of BOMB_BYTES zeros
     on the topic /padding follows that camera message, alone in its chunk (a few hundred bytes of
     zstd) or, not `alone`, in the chunk of the camera messages around it."""
     out = io.BytesIO()
-    writer = Writer(out, chunk_size=chunk_size, compression=compression)
+    writer = Writer(out, chunk_size=chunk_size, compression=compression, index_types=index_types)
     writer.start("ros2", "test")
     channels: dict[int, int] = {}
     with good.open("rb") as stream:
@@ -246,3 +248,61 @@ def test_the_default_cap_is_far_above_real_chunks(shared_data: Path) -> None:
                     [largest, *(c.uncompressed_size for c in source.summary.chunk_indexes)]
                 )
     assert 0 < largest < 64 << 20
+
+
+# --- a message record inside a chunk shorter than its header -------------------------------
+
+
+def message_shorter_than_its_header(good: Path, tmp_path: Path) -> Path:
+    """Uncompressed chunks without summary; in chunk 2 the first message record says it is 10
+    bytes long, less than a message's 22-byte header, and the chunk's CRC is made to fit."""
+    data = bytearray(rewrite(good, compression=CompressionType.NONE))
+    offset, chunk = chunks(bytes(data))[1]
+    records = offset + 9 + 8 + 8 + 8 + 4 + 4 + 8  # times, size, CRC, "" compression, length
+    position = records
+    while data[position] != 0x05:  # the chunk's schema or channel records come first
+        position += 9 + struct.unpack_from("<Q", data, position + 1)[0]
+    struct.pack_into("<Q", data, position + 1, 10)
+    body = bytes(data[records : records + len(chunk.data)])
+    struct.pack_into("<I", data, offset + 9 + 24, zlib.crc32(body))
+    return unindexed(tmp_path, bytes(data))
+
+
+@pytest.mark.parametrize("recover", [False, True], ids=["plain", "--recover"])
+def test_messages_a_short_message_record_swallows_are_counted(
+    recover: bool, good_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The damaged record is read with the rest of its chunk as its data (the mcap library's
+    reading of a length under its header): the messages after it are not in the data, and the
+    message index records that follow the chunk say how many there were."""
+    log = message_shorter_than_its_header(good_log, tmp_path)
+    out = tmp_path / "out.mcap"
+    args = ["annotate", log, "-o", out, "--no-verify", "--json"] + ["--recover"] * recover
+    status, stdout, err = run(capsys, *args)
+    assert status == ExitCode.OK, err
+    summary = json.loads(stdout)
+    assert summary["image_messages_promised"] == 12
+    assert summary["image_messages_promised_by"] == "the message index"
+    missing = summary["frames_skipped_by_reason"]["missing from the data"]
+    assert missing > 0 and summary["frames_used"] + missing == 12
+    assert "the message index of unindexed.mcap promises 12 messages" in err
+    with out.open("rb") as file:
+        meta = next(m for m in make_reader(file).iter_metadata() if m.name == "doseqslam")
+    assert json.loads(meta.metadata["frames_skipped_by_reason"])["missing from the data"] == missing
+    assert meta.metadata["image_messages_promised_by"] == "the message index"
+
+
+def test_an_unindexed_log_whose_chunks_have_no_message_index_promises_nothing(
+    good_log: Path, tmp_path: Path
+) -> None:
+    log = unindexed(tmp_path, rewrite(good_log, index_types=IndexType.NONE))
+    with McapSource(log) as source:
+        assert source.promised_messages(TOPIC) is None
+        assert next(c for c in source.channels() if c.topic == TOPIC).message_count == 12
+
+
+def test_an_unindexed_whole_log_keeps_its_promise(good_log: Path, tmp_path: Path) -> None:
+    log = unindexed(tmp_path, good_log.read_bytes())
+    with McapSource(log) as source:
+        promise = source.promised_messages(TOPIC)
+    assert promise is not None and (promise.count, promise.origin) == (12, "the message index")

@@ -21,6 +21,7 @@ import inspect
 import io
 import json
 import struct
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,8 +30,8 @@ from typing import IO, Any
 
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
 from mcap.reader import McapReader, NonSeekingReader, SeekingReader
-from mcap.records import Channel, Message, MessageIndex, Schema
-from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 from mcap.summary import Summary
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
@@ -191,23 +192,54 @@ def _stats_from_index(
     return list(stats.values())
 
 
-def _stats_from_stream(file: IO[bytes], size_limit: int) -> list[_ChannelStats]:
+@dataclass
+class _StreamTally:
+    """What one pass over every record finds: the channels' messages, and what the message
+    index records after each chunk say the chunks hold (`indexed`: every chunk has them)."""
+
+    stats: dict[int, _ChannelStats]
+    index_counts: Counter[int]
+    indexed: bool
+
+
+def _tally_stream(file: IO[bytes], size_limit: int) -> _StreamTally:
     """Counts and first/last times by one pass over every record (chunks are decompressed one
     at a time, so memory stays at one chunk)."""
     file.seek(0)
     schemas: dict[int, Schema] = {}
     stats: dict[int, _ChannelStats] = {}
-    reader = StreamReader(file, validate_crcs=True, record_size_limit=size_limit)
-    for record in reader.records:
-        if isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Channel) and record.id not in stats:
-            stats[record.id] = _ChannelStats(record, _type_name(schemas, record))
-        elif isinstance(record, Message):
-            if record.channel_id not in stats:
-                raise ValueError(f"a message refers to the unknown channel {record.channel_id}")
-            stats[record.channel_id].add_times((record.log_time,))
-    return list(stats.values())
+    index_counts: Counter[int] = Counter()
+    chunks = indexed_chunks = 0
+    reader = StreamReader(file, emit_chunks=True, record_size_limit=size_limit)
+    for outer in reader.records:
+        if isinstance(outer, Chunk):
+            chunks += 1
+        elif isinstance(outer, MessageIndex):
+            indexed_chunks = chunks  # a chunk's indexes follow it
+            index_counts[outer.channel_id] += len(outer.records)
+        inner = breakup_chunk(outer, validate_crc=True) if isinstance(outer, Chunk) else [outer]
+        for record in inner:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel) and record.id not in stats:
+                stats[record.id] = _ChannelStats(record, _type_name(schemas, record))
+            elif isinstance(record, Message):
+                if record.channel_id not in stats:
+                    raise ValueError(f"a message refers to the unknown channel {record.channel_id}")
+                stats[record.channel_id].add_times((record.log_time,))
+    return _StreamTally(stats, index_counts, chunks > 0 and indexed_chunks == chunks)
+
+
+def _index_counts_by_topic(tally: _StreamTally) -> Counter[str] | None:
+    """The message indexes' counts by topic (None unless every chunk has its indexes)."""
+    if not tally.indexed:
+        return None
+    counts: Counter[str] = Counter()
+    for cid, count in tally.index_counts.items():
+        entry = tally.stats.get(cid)
+        if entry is not None:
+            counts[entry.channel.topic] += count
+    return counts
 
 
 def _topic_info(topic: str, group: list[_ChannelStats]) -> ChannelInfo:
@@ -351,6 +383,9 @@ class McapSource:
             self._file.close()
             raise
         self._channels: list[ChannelInfo] | None = None
+        # Without a summary: messages per topic by the message index records, when every chunk
+        # has them (None: no chunks, or some without; set by channels()).
+        self._index_counts: Counter[str] | None = None
         self._deserializers: dict[tuple[int, str], Deserializer] = {}
 
     def _reader(self, file: IO[bytes]) -> SeekingReader:
@@ -418,7 +453,9 @@ class McapSource:
                 if self._summary:
                     stats = _stats_from_index(self._file, self._summary, limit)
                 if stats is None:
-                    stats = _stats_from_stream(self._file, limit)
+                    tally = _tally_stream(self._file, limit)
+                    stats = list(tally.stats.values())
+                    self._index_counts = _index_counts_by_topic(tally)
             except Exception as exc:
                 raise SourceError(
                     f"{self.path}: cannot list the channels ({describe_read_error(exc)}); "
@@ -428,16 +465,23 @@ class McapSource:
         return list(self._channels)
 
     def promised_messages(self, topic: str) -> Promise | None:
-        """The count of the Statistics record for `topic` (None without one: cut short, no
-        summary). A record the data section no longer holds (e.g. its opcode flipped, which
-        a reader must skip as an unknown record) is missing against it."""
+        """The count of the Statistics record for `topic`; without a summary, that of the
+        message index records that follow every chunk (None without either: cut short, no
+        indexes). A record the data section no longer holds (e.g. its opcode flipped, which a
+        reader must skip as an unknown record, or messages swallowed by one whose length is
+        shorter than its header) is missing against it."""
         statistics = self._summary.statistics if self._summary is not None else None
-        if statistics is None:
+        if statistics is not None:
+            assert self._summary is not None
+            ids = [cid for cid, ch in self._summary.channels.items() if ch.topic == topic]
+            count = sum(statistics.channel_message_counts.get(cid, 0) for cid in ids)
+            return Promise(count, "the Statistics record")
+        if self._summary is not None:
             return None
-        assert self._summary is not None
-        ids = [cid for cid, channel in self._summary.channels.items() if channel.topic == topic]
-        count = sum(statistics.channel_message_counts.get(cid, 0) for cid in ids)
-        return Promise(count, "the Statistics record")
+        self.channels()  # one pass, which also reads the message indexes
+        if self._index_counts is None or topic not in self._index_counts:
+            return None
+        return Promise(self._index_counts[topic], "the message index")
 
     def unattributed_messages(self) -> int:
         """0: a message of an undeclared channel makes the file unreadable (SourceError)."""
