@@ -306,3 +306,18 @@ def test_an_unindexed_whole_log_keeps_its_promise(good_log: Path, tmp_path: Path
     with McapSource(log) as source:
         promise = source.promised_messages(TOPIC)
     assert promise is not None and (promise.count, promise.origin) == (12, "the message index")
+
+
+def test_the_recovery_line_names_the_chunks_over_the_cap() -> None:
+    from doseqslam_logs.sources.salvage import SalvageReport
+
+    report = SalvageReport(file_size=100, bytes_used=100, complete=True, messages=10)
+    report.corrupt_chunks = report.oversized_chunks = 1
+    report.lost_by_topic[TOPIC] = 2
+    report.known_messages, report.known_from = 12, "the Statistics record"
+    assert report.describe() == (
+        "1 corrupt chunk(s) dropped (2 messages), 1 of these chunk(s) over the cap of "
+        f"{TEST_CAP} bytes uncompressed; recovered 10 of 12 known messages "
+        "(known from the Statistics record)"
+    )
+    assert report.as_metadata()["oversized_chunks"] == 1

@@ -10,6 +10,8 @@ length gives, and writes what it can read into a new, complete and indexed MCAP:
   record (e.g. a huge records-length field) is dropped whole; its messages are counted by topic
   from the chunk itself when it still parses without the check, else from the message index
   records that follow it;
+* a chunk that claims more than the chunk cap uncompressed (`chunk_limits`) is dropped the same
+  way without being decompressed, and counted from its message indexes;
 * a record whose own length is impossible (past the end of the file, or not what the summary's
   chunk index says for a chunk there) is stepped over: to the length the chunk index gives,
   else to the next offset where a well-formed chunk record starts (found by a scan);
@@ -119,12 +121,12 @@ class SalvageReport:
                 self.uncountable_chunks
             )
             oversized = (
-                f", {self.oversized_chunks} of them over the cap of "
+                f", {self.oversized_chunks} of these chunk(s) over the cap of "
                 f"{chunk_limits.MAX_CHUNK_BYTES} bytes uncompressed"
             ) * bool(self.oversized_chunks)
             parts.append(
                 f"{self.corrupt_chunks} corrupt chunk(s) dropped "
-                f"({lost} messages{unknown}{oversized})"
+                f"({lost} messages{unknown}){oversized}"
             )
         if self.skipped_regions:
             parts.append(
