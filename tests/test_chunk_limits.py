@@ -321,3 +321,17 @@ def test_the_recovery_line_names_the_chunks_over_the_cap() -> None:
         "(known from the Statistics record)"
     )
     assert report.as_metadata()["oversized_chunks"] == 1
+
+
+def test_a_zstd_frame_cut_short_gives_what_decompresses_before_the_cut() -> None:
+    """The one-call path (a frame that states its size) cannot do it: the stream takes over."""
+    import random
+
+    import zstandard
+
+    raw = random.Random(0).randbytes(1 << 20)  # incompressible: 8 blocks of 128 KiB
+    packed = zstandard.ZstdCompressor(level=1).compress(raw)
+    assert zstandard.frame_content_size(packed) == len(raw)
+    prefix = chunk_limits.decompress_at_most("zstd", packed[: len(packed) // 2], len(raw) + 1)
+    assert 0 < len(prefix) < len(raw) and raw.startswith(prefix)
+    assert chunk_limits.decompress_at_most("zstd", packed, len(raw) + 1) == raw
