@@ -292,10 +292,31 @@ def test_messages_a_short_message_record_swallows_are_counted(
     assert meta.metadata["image_messages_promised_by"] == "the message index"
 
 
-def test_an_unindexed_log_whose_chunks_have_no_message_index_promises_nothing(
-    good_log: Path, tmp_path: Path
+def without_first_chunk_indexes(data: bytes) -> bytes:
+    """The message index records that follow the first chunk removed (no summary points at
+    them)."""
+    out, position, chunks_seen = bytearray(data[:8]), 8, 0
+    while position < len(data) - 8:
+        opcode, length = struct.unpack_from("<BQ", data, position)
+        end = position + 9 + length
+        chunks_seen += opcode == 0x06
+        if not (opcode == 0x07 and chunks_seen == 1):
+            out += data[position:end]
+        position = end
+    return bytes(out + data[position:])
+
+
+@pytest.mark.parametrize("which", ["no chunk", "all but the first"])
+def test_an_unindexed_log_without_a_message_index_for_every_chunk_promises_nothing(
+    which: str, good_log: Path, tmp_path: Path
 ) -> None:
-    log = unindexed(tmp_path, rewrite(good_log, index_types=IndexType.NONE))
+    if which == "no chunk":
+        log = unindexed(tmp_path, rewrite(good_log, index_types=IndexType.NONE))
+    else:
+        whole = unindexed(tmp_path, rewrite(good_log))
+        log = tmp_path / "partly.mcap"
+        log.write_bytes(without_first_chunk_indexes(whole.read_bytes()))
+        assert len(log.read_bytes()) < len(whole.read_bytes())
     with McapSource(log) as source:
         assert source.promised_messages(TOPIC) is None
         assert next(c for c in source.channels() if c.topic == TOPIC).message_count == 12

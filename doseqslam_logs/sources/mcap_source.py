@@ -210,12 +210,15 @@ def _tally_stream(file: IO[bytes], size_limit: int) -> _StreamTally:
     stats: dict[int, _ChannelStats] = {}
     index_counts: Counter[int] = Counter()
     chunks = indexed_chunks = 0
-    reader = StreamReader(file, emit_chunks=True, record_size_limit=size_limit)
+    # Chunks are emitted whole so that each one's message indexes can be told apart; the
+    # data section's CRC is still checked by the reader, each chunk's by breakup_chunk.
+    reader = StreamReader(file, validate_crcs=True, emit_chunks=True, record_size_limit=size_limit)
     for outer in reader.records:
         if isinstance(outer, Chunk):
             chunks += 1
         elif isinstance(outer, MessageIndex):
-            indexed_chunks = chunks  # a chunk's indexes follow it
+            # A chunk's indexes follow it: count each chunk once, at its first index.
+            indexed_chunks += indexed_chunks < chunks
             index_counts[outer.channel_id] += len(outer.records)
         inner = breakup_chunk(outer, validate_crc=True) if isinstance(outer, Chunk) else [outer]
         for record in inner:
