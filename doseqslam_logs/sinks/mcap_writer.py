@@ -44,6 +44,7 @@ from ..annotations.records import (
 from ..annotations.writer import Verifications, loop_closure_messages, sequence_messages
 from ..detector.events import SequenceDecision
 from ..errors import DoseqslamError, OutputError, SourceError
+from ..sources import chunk_limits  # noqa: F401 - the input's chunks are copied within the cap
 from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile

@@ -21,9 +21,10 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, ChunkIndex, Message, Schema
 from mcap.summary import Summary
 
-try:  # mcap's own log-time queue and chunk decompression, so that it reads as SeekingReader
+from doseqslam_logs.sources.chunk_limits import chunk_records
+
+try:  # mcap's own log-time queue, so that it reads as SeekingReader
     from mcap._message_queue import make_message_queue
-    from mcap.stream_reader import get_chunk_data_stream
 except ImportError:  # pragma: no cover - older mcap: read the chunks whole
     make_message_queue = None  # type: ignore[assignment]
 
@@ -108,12 +109,11 @@ def _index_entries(file: IO[bytes], position: int) -> list[tuple[int, int]]:
 
 
 def _chunk_data(file: IO[bytes], index: ChunkIndex) -> bytes:
-    """The chunk's records, decompressed and their CRC checked, as the SeekingReader does."""
+    """The chunk's records, decompressed within the chunk cap and their CRC checked, as the
+    SeekingReader does."""
     file.seek(index.chunk_start_offset + _RECORD_HEADER.size)
     chunk = Chunk.read(ReadDataStream(file))
-    stream, length = get_chunk_data_stream(chunk, validate_crc=True)
-    data: bytes = stream.read(length)
-    return data
+    return chunk_records(chunk, validate_crc=True)
 
 
 def _message_at(data: bytes, offset: int) -> Message:

@@ -21,6 +21,7 @@ import inspect
 import io
 import json
 import struct
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,8 +30,8 @@ from typing import IO, Any
 
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
 from mcap.reader import McapReader, NonSeekingReader, SeekingReader
-from mcap.records import Channel, Message, MessageIndex, Schema
-from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 from mcap.summary import Summary
 
 from doseqslam_logs.errors import DoseqslamError, NoCameraError, SourceError
@@ -41,6 +42,7 @@ from doseqslam_logs.sources.base import (
     ImageMessage,
     Promise,
 )
+from doseqslam_logs.sources.chunk_limits import ChunkTooLargeError, check_chunk_size
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 from doseqslam_logs.sources.mcap_index import indexed_topic_messages
 
@@ -190,23 +192,57 @@ def _stats_from_index(
     return list(stats.values())
 
 
-def _stats_from_stream(file: IO[bytes], size_limit: int) -> list[_ChannelStats]:
+@dataclass
+class _StreamTally:
+    """What one pass over every record finds: the channels' messages, and what the message
+    index records after each chunk say the chunks hold (`indexed`: every chunk has them)."""
+
+    stats: dict[int, _ChannelStats]
+    index_counts: Counter[int]
+    indexed: bool
+
+
+def _tally_stream(file: IO[bytes], size_limit: int) -> _StreamTally:
     """Counts and first/last times by one pass over every record (chunks are decompressed one
     at a time, so memory stays at one chunk)."""
     file.seek(0)
     schemas: dict[int, Schema] = {}
     stats: dict[int, _ChannelStats] = {}
-    reader = StreamReader(file, validate_crcs=True, record_size_limit=size_limit)
-    for record in reader.records:
-        if isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Channel) and record.id not in stats:
-            stats[record.id] = _ChannelStats(record, _type_name(schemas, record))
-        elif isinstance(record, Message):
-            if record.channel_id not in stats:
-                raise ValueError(f"a message refers to the unknown channel {record.channel_id}")
-            stats[record.channel_id].add_times((record.log_time,))
-    return list(stats.values())
+    index_counts: Counter[int] = Counter()
+    chunks = indexed_chunks = 0
+    # Chunks are emitted whole so that each one's message indexes can be told apart; the
+    # data section's CRC is still checked by the reader, each chunk's by breakup_chunk.
+    reader = StreamReader(file, validate_crcs=True, emit_chunks=True, record_size_limit=size_limit)
+    for outer in reader.records:
+        if isinstance(outer, Chunk):
+            chunks += 1
+        elif isinstance(outer, MessageIndex):
+            # A chunk's indexes follow it: count each chunk once, at its first index.
+            indexed_chunks += indexed_chunks < chunks
+            index_counts[outer.channel_id] += len(outer.records)
+        inner = breakup_chunk(outer, validate_crc=True) if isinstance(outer, Chunk) else [outer]
+        for record in inner:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel) and record.id not in stats:
+                stats[record.id] = _ChannelStats(record, _type_name(schemas, record))
+            elif isinstance(record, Message):
+                if record.channel_id not in stats:
+                    raise ValueError(f"a message refers to the unknown channel {record.channel_id}")
+                stats[record.channel_id].add_times((record.log_time,))
+    return _StreamTally(stats, index_counts, chunks > 0 and indexed_chunks == chunks)
+
+
+def _index_counts_by_topic(tally: _StreamTally) -> Counter[str] | None:
+    """The message indexes' counts by topic (None unless every chunk has its indexes)."""
+    if not tally.indexed:
+        return None
+    counts: Counter[str] = Counter()
+    for cid, count in tally.index_counts.items():
+        entry = tally.stats.get(cid)
+        if entry is not None:
+            counts[entry.channel.topic] += count
+    return counts
 
 
 def _topic_info(topic: str, group: list[_ChannelStats]) -> ChannelInfo:
@@ -268,6 +304,8 @@ def in_log_time_order(records: Iterable[_Record], window: int) -> Iterator[_Reco
 def describe_read_error(exc: BaseException) -> str:
     """One line saying what is wrong with the file, from an exception of the mcap library (or
     of a decompressor, struct, ...) raised while reading it."""
+    if isinstance(exc, ChunkTooLargeError):
+        return str(exc)
     if isinstance(exc, EndOfFile):
         return "the file ends in the middle of a record: truncated?"
     if isinstance(exc, CRCValidationError):
@@ -348,6 +386,9 @@ class McapSource:
             self._file.close()
             raise
         self._channels: list[ChannelInfo] | None = None
+        # Without a summary: messages per topic by the message index records, when every chunk
+        # has them (None: no chunks, or some without; set by channels()).
+        self._index_counts: Counter[str] | None = None
         self._deserializers: dict[tuple[int, str], Deserializer] = {}
 
     def _reader(self, file: IO[bytes]) -> SeekingReader:
@@ -377,6 +418,15 @@ class McapSource:
                 f"footer (recording cut short?); {RECOVER_HINT}"
             )
 
+    def _check_chunk_sizes(self) -> None:
+        """Refuse a chunk over the cap from the chunk index, before anything is decompressed
+        (without an index each chunk's own header is checked as it is read)."""
+        for chunk in self._summary.chunk_indexes if self._summary is not None else []:
+            try:
+                check_chunk_size(chunk.uncompressed_size)
+            except ChunkTooLargeError as exc:
+                raise SourceError(f"{self.path}: {exc}; {RECOVER_HINT}") from exc
+
     @property
     def summary(self) -> Summary | None:
         """The file's summary section as read when it was opened (None: cut short, damaged,
@@ -398,6 +448,7 @@ class McapSource:
             SourceError: the file is corrupt or truncated.
         """
         self._check_complete()
+        self._check_chunk_sizes()
         if self._channels is None:
             limit = max(self.size, 1)
             try:
@@ -405,7 +456,9 @@ class McapSource:
                 if self._summary:
                     stats = _stats_from_index(self._file, self._summary, limit)
                 if stats is None:
-                    stats = _stats_from_stream(self._file, limit)
+                    tally = _tally_stream(self._file, limit)
+                    stats = list(tally.stats.values())
+                    self._index_counts = _index_counts_by_topic(tally)
             except Exception as exc:
                 raise SourceError(
                     f"{self.path}: cannot list the channels ({describe_read_error(exc)}); "
@@ -415,16 +468,23 @@ class McapSource:
         return list(self._channels)
 
     def promised_messages(self, topic: str) -> Promise | None:
-        """The count of the Statistics record for `topic` (None without one: cut short, no
-        summary). A record the data section no longer holds (e.g. its opcode flipped, which
-        a reader must skip as an unknown record) is missing against it."""
+        """The count of the Statistics record for `topic`; without a summary, that of the
+        message index records that follow every chunk (None without either: cut short, no
+        indexes). A record the data section no longer holds (e.g. its opcode flipped, which a
+        reader must skip as an unknown record, or messages swallowed by one whose length is
+        shorter than its header) is missing against it."""
         statistics = self._summary.statistics if self._summary is not None else None
-        if statistics is None:
+        if statistics is not None:
+            assert self._summary is not None
+            ids = [cid for cid, ch in self._summary.channels.items() if ch.topic == topic]
+            count = sum(statistics.channel_message_counts.get(cid, 0) for cid in ids)
+            return Promise(count, "the Statistics record")
+        if self._summary is not None:
             return None
-        assert self._summary is not None
-        ids = [cid for cid, channel in self._summary.channels.items() if channel.topic == topic]
-        count = sum(statistics.channel_message_counts.get(cid, 0) for cid in ids)
-        return Promise(count, "the Statistics record")
+        self.channels()  # one pass, which also reads the message indexes
+        if self._index_counts is None or topic not in self._index_counts:
+            return None
+        return Promise(self._index_counts[topic], "the message index")
 
     def unattributed_messages(self) -> int:
         """0: a message of an undeclared channel makes the file unreadable (SourceError)."""

@@ -10,6 +10,8 @@ length gives, and writes what it can read into a new, complete and indexed MCAP:
   record (e.g. a huge records-length field) is dropped whole; its messages are counted by topic
   from the chunk itself when it still parses without the check, else from the message index
   records that follow it;
+* a chunk that claims more than the chunk cap uncompressed (`chunk_limits`) is dropped the same
+  way without being decompressed, and counted from its message indexes;
 * a record whose own length is impossible (past the end of the file, or not what the summary's
   chunk index says for a chunk there) is stepped over: to the length the chunk index gives,
   else to the next offset where a well-formed chunk record starts (found by a scan);
@@ -55,6 +57,7 @@ from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
 from doseqslam_logs.errors import SourceError
+from doseqslam_logs.sources import chunk_limits
 from doseqslam_logs.sources.base import MCAP_MAGIC
 from doseqslam_logs.sources.mcap_source import is_complete
 
@@ -77,6 +80,7 @@ class SalvageReport:
     stop_reason: str = ""  # why reading stopped before the footer ("" if it did not)
     messages: int = 0  # messages copied
     corrupt_chunks: int = 0  # chunks dropped (CRC mismatch, does not decompress, bad fields)
+    oversized_chunks: int = 0  # of corrupt_chunks: claiming more than the chunk cap
     lost_by_topic: Counter[str] = field(default_factory=Counter)  # their messages, by topic
     uncountable_chunks: int = 0  # dropped chunks whose messages could not even be counted
     orphan_messages: int = 0  # messages whose channel record was lost
@@ -116,8 +120,13 @@ class SalvageReport:
             unknown = f", {self.uncountable_chunks} of them uncountable" * bool(
                 self.uncountable_chunks
             )
+            oversized = (
+                f", {self.oversized_chunks} of these chunk(s) over the cap of "
+                f"{chunk_limits.MAX_CHUNK_BYTES} bytes uncompressed"
+            ) * bool(self.oversized_chunks)
             parts.append(
-                f"{self.corrupt_chunks} corrupt chunk(s) dropped ({lost} messages{unknown})"
+                f"{self.corrupt_chunks} corrupt chunk(s) dropped "
+                f"({lost} messages{unknown}){oversized}"
             )
         if self.skipped_regions:
             parts.append(
@@ -148,6 +157,7 @@ class SalvageReport:
             "known_messages": self.known_messages,
             "known_from": self.known_from,
             "corrupt_chunks": self.corrupt_chunks,
+            "oversized_chunks": self.oversized_chunks,
             "lost_by_topic": dict(sorted(self.lost_by_topic.items())),
             "uncountable_chunks": self.uncountable_chunks,
             "orphan_messages": self.orphan_messages,
@@ -212,20 +222,10 @@ def _is_chunk_at(data: bytes | mmap.mmap, offset: int, size: int) -> bool:
 
 
 def _decompress_prefix(chunk: Chunk) -> bytes:
-    """As much of a cut-short chunk's records as a streaming decompressor gets out of it."""
-    limit = chunk.uncompressed_size
-    if chunk.compression == "zstd":
-        import zstandard
-
-        out: bytes = zstandard.ZstdDecompressor().decompressobj().decompress(chunk.data)
-        return out[:limit]
-    if chunk.compression == "lz4":
-        import lz4.frame
-
-        decompressor = lz4.frame.LZ4FrameDecompressor()
-        lz4_out: bytes = decompressor.decompress(chunk.data, max_length=limit)
-        return lz4_out
-    return chunk.data
+    """As much of a cut-short chunk's records as a streaming decompressor gets out of it, at
+    most what the chunk claims (and never over the chunk cap)."""
+    limit = min(chunk.uncompressed_size, chunk_limits.MAX_CHUNK_BYTES)
+    return chunk_limits.decompress_at_most(chunk.compression, chunk.data, limit)
 
 
 def _whole_records(data: bytes) -> list[McapRecord]:
@@ -402,6 +402,10 @@ class _Salvager:
         head = _chunk_head(body)
         if head is None or len(head.chunk.data) != head.records_length:
             self.drop_uncounted()  # its fields do not fit inside its record
+            return
+        if head.chunk.uncompressed_size > chunk_limits.MAX_CHUNK_BYTES:
+            self.report.oversized_chunks += 1
+            self.drop_uncounted()  # never decompressed: counted from its message indexes
             return
         try:
             records = breakup_chunk(head.chunk, validate_crc=True)
