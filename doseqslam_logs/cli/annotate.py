@@ -99,6 +99,12 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="write only our channels and metadata, not the input's records",
     )
+    parser.add_argument(
+        "--no-visualization",
+        dest="visualization",
+        action="store_false",
+        help="leave out the channels Foxglove draws (match images, image texts, 3-D lines)",
+    )
     add_parameter_options(parser)
     add_verification_options(parser)
 
@@ -129,6 +135,7 @@ def annotate_options_from_args(args: argparse.Namespace, workers: int) -> Annota
         verification=verification_from_args(args),
         intrinsics=intrinsics_from_args(args),
         max_pixels=args.max_pixels,
+        visualization=args.visualization,
     )
 
 

@@ -33,6 +33,7 @@ from ..sinks.mcap_writer import (
     refuse_same_file,
     write_annotated_mcap,
 )
+from ..sinks.visualization import Visualization, read_trajectory, visual_loops
 from ..sources import is_mcap_file, open_source, pick_image_topic
 from ..sources.base import Promise, Source
 from ..sources.camera_info import read_camera_info
@@ -100,6 +101,9 @@ class AnnotateOptions:
     # An image whose header claims more pixels is skipped ("too large") before it is decoded,
     # so that a decompression bomb cannot take the machine's memory.
     max_pixels: int = DEFAULT_MAX_PIXELS
+    # The visualization channels (match images, image texts, 3-D lines; sinks.visualization),
+    # False: `--no-visualization`, the output without them. Never in a sidecar.
+    visualization: bool = True
 
 
 @dataclass(frozen=True)
@@ -180,6 +184,12 @@ def verify_decisions(
     verified = {item.decision.sequence_id: item for item in checked}
     wall_s = time.perf_counter() - start
     return Verification(options.verification, intrinsics, origin, verified, stats, wall_s)
+
+
+def visualization_of(annotations: Annotations, read_path: Path, topic: str) -> Visualization:
+    """What the visualization channels draw for these annotations of the log."""
+    loops = visual_loops(annotations.messages)
+    return Visualization(topic, loops, read_trajectory(read_path))
 
 
 def _hash_in_background(path: Path) -> Future[str]:
@@ -453,6 +463,10 @@ def _annotate(
         metadata.to_entries(),
         None if verification is None else verification.decisions,
     )
+    if options.visualization and not options.sidecar:
+        annotations = replace(
+            annotations, visualization=visualization_of(annotations, read_path, topic)
+        )
     _announce(stage, "write")
     written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
     return AnnotateResult(

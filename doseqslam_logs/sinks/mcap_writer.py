@@ -47,6 +47,8 @@ from ..errors import DoseqslamError, OutputError, SourceError
 from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile
+from .visual_encoders import visual_encoder_for_profile
+from .visualization import Visualization, VisualWriter
 
 LIBRARY = f"doseqslam-logs/{__version__}"
 CHUNK_SIZE = 1024 * 1024  # fixed, like the compression: part of what makes outputs identical
@@ -62,6 +64,7 @@ class Annotations:
     messages: Sequence[TimedMessage]
     metadata: Mapping[str, str]  # the `doseqslam` metadata record: version, parameters, ...
     frame_times: FrameTimes | None = None  # written as the FRAME_TIMES_ATTACHMENT
+    visualization: Visualization | None = None  # None: no visualization channels
 
     def __post_init__(self) -> None:
         """Raises TypeError when the metadata is not a mapping of strings to strings."""
@@ -111,6 +114,7 @@ class WriteSummary:
     copied_messages: int = 0  # input messages copied (0 for a sidecar)
     written: dict[str, int] = field(default_factory=dict)  # our messages per topic
     replaced_topics: list[str] = field(default_factory=list)  # input /doseqslam/ channels
+    visualized: dict[str, int] = field(default_factory=dict)  # visualization messages per topic
 
 
 class _Storage(Protocol):
@@ -243,8 +247,15 @@ def refuse_same_file(input_path: Path, output_path: Path) -> None:
 class _Annotator:
     """Writes our channels and messages into the output, interleaved by log time."""
 
-    def __init__(self, writer: Writer, encoder: MessageEncoder, messages: Sequence[TimedMessage]):
+    def __init__(
+        self,
+        writer: Writer,
+        encoder: MessageEncoder,
+        messages: Sequence[TimedMessage],
+        visuals: VisualWriter | None = None,
+    ):
         self.writer = writer
+        self.visuals = visuals
         self.encoder = encoder
         # Sorting by (log time, type, index) fixes the order whatever order the caller used.
         self.pending = sorted(messages, key=lambda m: m.sort_key)
@@ -254,12 +265,25 @@ class _Annotator:
 
     def write_until(self, log_time_ns: int | None) -> None:
         """Writes our messages with log time <= log_time_ns (all of them for None)."""
+        if self.visuals is not None:
+            self.visuals.write_until(log_time_ns)
         while self.position < len(self.pending):
             message = self.pending[self.position]
             if log_time_ns is not None and message.log_time_ns > log_time_ns:
                 return
             self._write(message)
             self.position += 1
+
+    def input_channel(
+        self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
+    ) -> None:
+        """Called for each input channel copied (the visualization reuses the camera's)."""
+        if self.visuals is not None:
+            self.visuals.input_channel(topic, encoding, schema_id, metadata)
+
+    def visualized(self) -> dict[str, int]:
+        """Writes the rest of the visualization; its messages per topic."""
+        return {} if self.visuals is None else self.visuals.finish()
 
     def finish(self, metadata: Mapping[str, str], frame_times: FrameTimes | None) -> dict[str, int]:
         """Writes the rest of our messages, the frame times and the `doseqslam` metadata."""
@@ -358,6 +382,9 @@ class _McapCopier:
         self.channel_ids[channel.id] = self.writer.register_channel(
             channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
         )
+        self.annotator.input_channel(
+            channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
+        )
 
     def _output_schema(self, schema_id: int, path: Path) -> int:
         if schema_id == 0:  # a channel without schema
@@ -435,6 +462,7 @@ class _BagCopier:
             self.channel_ids[key] = self.writer.register_channel(
                 topic, encoding, schema_id, metadata
             )
+            self.annotator.input_channel(topic, encoding, schema_id, metadata)
 
     def message(self, key: Any, timestamp: int, data: bytes) -> None:
         channel_id = self.channel_ids.get(key)
@@ -560,9 +588,14 @@ def _write(
 ) -> None:
     writer = Writer(stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
     writer.start(profile=log.profile, library=LIBRARY)
-    annotator = _Annotator(writer, encoder_for_profile(log.profile), annotations.messages)
+    visuals = None
+    if annotations.visualization is not None and not sidecar:
+        encoder = visual_encoder_for_profile(log.profile)
+        visuals = VisualWriter(writer, encoder, log.path, annotations.visualization)
+    annotator = _Annotator(writer, encoder_for_profile(log.profile), annotations.messages, visuals)
     if not sidecar:
         summary.copied_messages, summary.replaced_topics = _copy_input(log, writer, annotator)
+    summary.visualized = annotator.visualized()
     summary.written = annotator.finish(annotations.metadata, annotations.frame_times)
     writer.finish()  # type: ignore[no-untyped-call]  # mcap leaves it unannotated
 

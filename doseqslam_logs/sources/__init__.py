@@ -132,6 +132,8 @@ def pick_image_topic(source: Source, topic: str | None = None) -> str:
     names = [c.topic for c in channels if c.is_image]
     listing = ", ".join(names)
     if topic is None:
+        # An annotated log's match images (/doseqslam/match/...) are never its camera.
+        names = [n for n in names if not n.startswith("/doseqslam/")] or names
         if len(names) == 1:
             return names[0]
         if not names:
