@@ -35,7 +35,14 @@ PROFILES = {
     "ros1": "drive_loops.bag",
     "json": "drive_loops.foxglove.mcap",
 }
-OUR_TOPICS = ("/doseqslam/loop_closures", "/doseqslam/sequences")
+OUR_TOPICS = (
+    "/doseqslam/loop_closures",
+    "/doseqslam/sequences",
+    # The visualization channels (sinks.visualization): decoded by the viewer, no problem.
+    "/doseqslam/match/image/compressed",
+    "/doseqslam/match/annotations",
+    "/doseqslam/markers",
+)
 
 
 def _missing() -> str:

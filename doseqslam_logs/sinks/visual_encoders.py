@@ -31,6 +31,7 @@ IMAGE_ANNOTATIONS = "foxglove_msgs/msg/ImageAnnotations"
 LINE_STRIP, LINE_LIST = "strip", "list"
 _ROS_MARKER_TYPES = {LINE_STRIP: 4, LINE_LIST: 5}  # visualization_msgs/Marker
 _SCENE_LINE_TYPES = {LINE_STRIP: 0, LINE_LIST: 2}  # foxglove.LinePrimitive
+LINE_LOOP_POINTS = 2  # foxglove PointsAnnotation type
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,16 @@ class Text:
 
 
 @dataclass(frozen=True)
+class Badge:
+    """A filled square on an image, its top left corner at pixel (x, y)."""
+
+    x: float
+    y: float
+    size: float
+    color: Rgba
+
+
+@dataclass(frozen=True)
 class SchemaInfo:
     name: str
     encoding: str
@@ -80,7 +91,8 @@ class VisualEncoder(ABC):
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes: ...
 
     @abstractmethod
-    def annotations(self, time_ns: int, texts: Sequence[Text]) -> bytes: ...
+    def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
+        """foxglove ImageAnnotations: texts, and badges as filled LINE_LOOP points."""
 
 
 class _RosVisualEncoder(RosBuilder, VisualEncoder):
@@ -144,9 +156,8 @@ class _RosVisualEncoder(RosBuilder, VisualEncoder):
         marker["points"] = [dict(zip("xyz", p, strict=True)) for p in lines.points]
         return marker
 
-    def annotations(self, time_ns: int, texts: Sequence[Text]) -> bytes:
-        message = {"circles": [], "points": [], "texts": [_text(time_ns, t) for t in texts]}
-        return self._serialize(IMAGE_ANNOTATIONS, message)
+    def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
+        return self._serialize(IMAGE_ANNOTATIONS, _annotations(time_ns, texts, badges))
 
     def _serialize(self, typename: str, message: dict[str, Any]) -> bytes:
         built = self.build(typename, message)
@@ -185,8 +196,8 @@ class JsonVisualEncoder(VisualEncoder):
         entities = [_entity(frame_id, time_ns, item) for item in lines]
         return _json({"deletions": [], "entities": entities})
 
-    def annotations(self, time_ns: int, texts: Sequence[Text]) -> bytes:
-        return _json({"circles": [], "points": [], "texts": [_text(time_ns, t) for t in texts]})
+    def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
+        return _json(_annotations(time_ns, texts, badges))
 
 
 def _entity(frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
@@ -217,6 +228,26 @@ def _entity(frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
 
 def _xyz(point: Sequence[float]) -> dict[str, float]:
     return dict(zip("xyz", (float(v) for v in point), strict=True))
+
+
+def _annotations(time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> dict[str, Any]:
+    points = [_badge(time_ns, badge) for badge in badges]
+    return {"circles": [], "points": points, "texts": [_text(time_ns, t) for t in texts]}
+
+
+def _badge(time_ns: int, badge: Badge) -> dict[str, Any]:
+    x, y, size = badge.x, badge.y, badge.size
+    corners = [(x, y), (x + size, y), (x + size, y + size), (x, y + size)]
+    color = dict(zip("rgba", badge.color, strict=True))
+    return {
+        "timestamp": time_dict(time_ns),
+        "type": LINE_LOOP_POINTS,
+        "points": [{"x": px, "y": py} for px, py in corners],
+        "outline_color": color,
+        "outline_colors": [],
+        "fill_color": color,
+        "thickness": 2.0,
+    }
 
 
 def _text(time_ns: int, text: Text) -> dict[str, Any]:

@@ -5,8 +5,12 @@ For each reported loop closure, at the query image's log time:
   schema as the camera topic): two Image panels show query and match side by side;
 - a text on the query image (`/doseqslam/match/annotations`) naming the match, its time and
   the verification result;
-- with a pose topic, a line from the query's to the match's position (`/doseqslam/markers`),
-  besides the whole trajectory, written once at the start of the log.
+- with a pose topic, the line from the query's to the match's position, highlighted
+  (`/doseqslam/match/marker`).
+With a pose topic, `/doseqslam/markers` holds the whole trajectory and one line per reported
+loop closure, written once, at the log's first message: a viewer seeking anywhere shows the
+latest message of each topic, so the run's picture and the current loop closure show wherever
+one scrubs (a scene built up message by message would show only its last line after a seek).
 
 Memory is bounded by the loop closures and the poses, never by the images: the match image is
 read again from the input (a second reader, one ranged read per loop closure) when the writer,
@@ -29,13 +33,24 @@ from ..errors import SourceError
 from ..sources import open_source
 from ..sources.base import Source
 from ..sources.poses import ODOMETRY, POSE_TYPES, PoseTrack, canonical_type, read_poses
-from .visual_encoders import LINE_LIST, LINE_STRIP, Lines, SchemaInfo, Text, VisualEncoder
+from .visual_encoders import (
+    LINE_LIST,
+    LINE_STRIP,
+    Badge,
+    Lines,
+    SchemaInfo,
+    Text,
+    VisualEncoder,
+)
 
 MARKERS_TOPIC = OUR_TOPIC_PREFIX + "markers"
+MATCH_MARKER_TOPIC = OUR_TOPIC_PREFIX + "match/marker"
 ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
 DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
 TRAJECTORY_COLOR = (0.6, 0.6, 0.6, 1.0)
-LOOP_COLOR = (0.1, 0.9, 0.2, 1.0)
+LOOP_COLOR = (0.1, 0.8, 0.2, 1.0)
+CURRENT_LOOP_COLOR = (1.0, 0.3, 0.1, 1.0)
+BADGE_PX = 20.0  # the square drawn on the query image (Foxglove 1.48 draws no texts)
 TEXT_COLOR = (1.0, 1.0, 1.0, 1.0)
 TEXT_BACKGROUND = (0.0, 0.0, 0.0, 0.6)
 
@@ -179,7 +194,7 @@ class VisualWriter:
             loop = loops[self.position]
             if log_time_ns is not None and loop.query_log_time_ns > log_time_ns:
                 return
-            self._write_loop(self.position, loop)
+            self._write_loop(loop)
             self.position += 1
 
     def finish(self) -> dict[str, int]:
@@ -193,26 +208,30 @@ class VisualWriter:
         self.trajectory_written = True
         trajectory = self.plan.trajectory
         assert trajectory is not None
-        points = [tuple(float(v) for v in p) for p in trajectory.track.positions]
-        lines = Lines("doseqslam/trajectory", 0, LINE_STRIP, points, TRAJECTORY_COLOR, 0.1)  # type: ignore[arg-type]
-        data = self.encoder.scene(trajectory.frame_id, log_time_ns, [lines])
+        points = [(float(x), float(y), float(z)) for x, y, z in trajectory.track.positions]
+        path = Lines("doseqslam/trajectory", 0, LINE_STRIP, points, TRAJECTORY_COLOR, 0.1)
+        ends = [end for loop in self.plan.loops for end in self._ends(trajectory, loop)]
+        loops = Lines("doseqslam/loop_closures", 0, LINE_LIST, ends, LOOP_COLOR, 0.08)
+        data = self.encoder.scene(trajectory.frame_id, log_time_ns, [path, loops])
         self._add(MARKERS_TOPIC, self.encoder.scene_schema, log_time_ns, data)
 
-    def _write_loop(self, number: int, loop: VisualLoop) -> None:
+    @staticmethod
+    def _ends(trajectory: Trajectory, loop: VisualLoop) -> list[tuple[float, float, float]]:
+        return [trajectory.position(loop.query_time_ns), trajectory.position(loop.match_time_ns)]
+
+    def _write_loop(self, loop: VisualLoop) -> None:
         time = loop.query_log_time_ns
         self._write_match_image(loop)
-        text = Text(4.0, 4.0, loop.caption, 12.0, TEXT_COLOR, TEXT_BACKGROUND)
-        annotations = self.encoder.annotations(loop.query_time_ns, [text])
+        text = Text(BADGE_PX + 8, 4.0, loop.caption, 12.0, TEXT_COLOR, TEXT_BACKGROUND)
+        badge = Badge(4.0, 4.0, BADGE_PX, LOOP_COLOR)
+        annotations = self.encoder.annotations(loop.query_time_ns, [text], [badge])
         self._add(ANNOTATIONS_TOPIC, self.encoder.annotations_schema, time, annotations)
         trajectory = self.plan.trajectory
         if trajectory is not None:
-            ends = [
-                trajectory.position(loop.query_time_ns),
-                trajectory.position(loop.match_time_ns),
-            ]
-            lines = Lines("doseqslam/loop_closures", number, LINE_LIST, ends, LOOP_COLOR, 0.15)
+            ends = self._ends(trajectory, loop)
+            lines = Lines("doseqslam/match", 0, LINE_LIST, ends, CURRENT_LOOP_COLOR, 0.6)
             data = self.encoder.scene(trajectory.frame_id, time, [lines])
-            self._add(MARKERS_TOPIC, self.encoder.scene_schema, time, data)
+            self._add(MATCH_MARKER_TOPIC, self.encoder.scene_schema, time, data)
 
     def _write_match_image(self, loop: VisualLoop) -> None:
         if self.camera is None:
