@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
@@ -14,6 +16,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.detector import Parameters
+from doseqslam_logs.errors import SourceError
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.sources.mcap_source import McapSource
 
@@ -215,3 +218,66 @@ def test_ros1_profile_channels_carry_md5sums(tmp_path: Path) -> None:
     assert names[MARKERS] == "visualization_msgs/MarkerArray"
     assert names[TEXTS] == "foxglove_msgs/ImageAnnotations"
     assert all(len(c.metadata["md5sum"]) == 32 for c in ours.values())
+
+
+def _with_broken_odometry(source: Path, target: Path) -> None:
+    """`source` without its poses, plus an /odom topic whose one pose is NaN."""
+    _copy_without(source, target.with_suffix(".tmp"), {"/odom", "/ground_truth/pose"})
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    typename = "nav_msgs/msg/Odometry"
+    types = store.types
+    header = types["std_msgs/msg/Header"](types["builtin_interfaces/msg/Time"](1, 0), "odom")
+    pose = store.types["geometry_msgs/msg/Pose"](
+        types["geometry_msgs/msg/Point"](math.nan, 0.0, 0.0),
+        types["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
+    )
+    covariance = np.zeros(36)
+    twist = types["geometry_msgs/msg/TwistWithCovariance"](
+        types["geometry_msgs/msg/Twist"](
+            types["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+            types["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+        ),
+        covariance,
+    )
+    odometry = types[typename](
+        header, "base", types["geometry_msgs/msg/PoseWithCovariance"](pose, covariance), twist
+    )
+    definition, _ = store.generate_msgdef(typename, ros_version=2)
+    with target.with_suffix(".tmp").open("rb") as stream, target.open("wb") as out:
+        reader = make_reader(stream)
+        writer = Writer(out)
+        writer.start(profile="ros2", library="test")
+        odom_schema = writer.register_schema(typename, "ros2msg", definition.encode())
+        odom = writer.register_channel("/odom", "cdr", odom_schema)
+        writer.add_message(odom, 10**9, bytes(store.serialize_cdr(odometry, typename)), 10**9)
+        ids: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.id not in ids:
+                assert schema is not None
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                ids[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
+                )
+            writer.add_message(ids[channel.id], message.log_time, message.data, message.log_time)
+        writer.finish()
+
+
+def test_unreadable_poses_leave_out_the_lines_and_nothing_else(tmp_path: Path) -> None:
+    log = tmp_path / "nan_pose.mcap"
+    _with_broken_odometry(ROS2, log)
+    output = tmp_path / "out.mcap"
+    annotate_log(log, output, Parameters(), NO_VERIFY)
+    found = channels(output)
+    assert MARKERS not in found and CURRENT not in found
+    assert found[MATCH][1] == found[TEXTS][1] > 0
+
+
+def test_a_match_image_not_found_again_fails_with_no_output(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The log changed under the run: SourceError (exit 3), and no output appears."""
+    monkeypatch.setattr(McapSource, "raw_messages", lambda *args: iter(()))
+    output = tmp_path / "out.mcap"
+    with pytest.raises(SourceError, match="is not found again"):
+        annotate_log(ROS2, output, Parameters(), NO_VERIFY)
+    assert list(tmp_path.iterdir()) == []

@@ -118,7 +118,8 @@ async function main() {
         await page.mouse.click(page.viewportSize().width * layoutAt, buttons.y - 24);
         await page.waitForTimeout(4000);
         await page.screenshot({ path: shot("layout") });
-        console.log(JSON.stringify({ log, topics, problems, errors }));
+        const message = (await text()).split("\n"); // the panels' text after the seek
+        console.log(JSON.stringify({ log, topics, problems, message, errors }));
         await page.close();
         continue;
       }
