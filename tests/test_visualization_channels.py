@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ from mcap.writer import Writer
 from rosbags.typesys import Stores, get_typestore
 
 from doseqslam_logs.annotations.reader import read_annotations
+from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import SourceError
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
@@ -280,4 +282,61 @@ def test_a_match_image_not_found_again_fails_with_no_output(
     output = tmp_path / "out.mcap"
     with pytest.raises(SourceError, match="is not found again"):
         annotate_log(ROS2, output, Parameters(), NO_VERIFY)
+    assert list(tmp_path.iterdir()) == []
+
+
+# Issue #19 item 5: pipes and `-` are refused with one line (they are read by seeking).
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["info", "{fifo}"],
+        ["annotate", "{fifo}", "-o", "{tmp}/out.mcap"],
+        ["export", "{fifo}", "--format", "tum", "-o", "{tmp}/out.tum"],
+        ["evaluate", "{fifo}", "--gt", str(SAMPLES / "drive_loops.gt.npz")],
+    ],
+)
+def test_a_pipe_as_input_is_refused_without_blocking(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str]
+) -> None:
+    fifo = tmp_path / "log.mcap"
+    os.mkfifo(fifo)  # no writer: opening it for reading would block for ever
+    args = [part.format(fifo=fifo, tmp=tmp_path) for part in command]
+    assert main(args) == 3
+    error = capsys.readouterr().err
+    assert error == f"doseqslam-logs: error: {fifo}: the log is a pipe (FIFO), not a file: " \
+        "logs are read by seeking; save it to a file\n"  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.mcap"]
+
+
+def test_a_pipe_in_a_batch_fails_that_log_only(tmp_path: Path) -> None:
+    fifo = tmp_path / "log.mcap"
+    os.mkfifo(fifo)
+    assert main(["batch", str(fifo), "-o", str(tmp_path / "out")]) == 1
+    [entry] = [json.loads(line) for line in (tmp_path / "out" / "manifest.jsonl").open()]
+    assert entry["exit_code"] == 3 and "a pipe (FIFO)" in entry["error"]
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["annotate", str(ROS2), "-o", "-"],
+        ["info", "-"],
+        ["annotate", "-", "-o", "out.mcap"],
+        ["export", str(ROS2), "--format", "tum", "-o", "-"],
+        ["diff", "-", str(ROS2)],
+    ],
+)
+def test_dash_for_standard_input_or_output_is_a_usage_error(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    command: list[str],
+) -> None:
+    monkeypatch.chdir(tmp_path)  # a file named `-` would appear here
+    assert main(command) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("doseqslam-logs: error: -: standard input and output are not")
+    assert error.count("\n") == 1
     assert list(tmp_path.iterdir()) == []

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import hashlib
 import json
@@ -208,6 +209,9 @@ def _hash_in_background(path: Path) -> Future[str]:
 
 def source_sha256(path: Path) -> str:
     """sha256 of a log file; of a rosbag2 folder, of its files' names and bytes in name order."""
+    if not (path.is_file() or path.is_dir()) and path.exists():
+        # A pipe or device: reading it would block or consume it; the run's reader refuses it.
+        raise OSError(errno.ESPIPE, "not a regular file", str(path))
     digest = hashlib.sha256()
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
     for file in files:

@@ -44,6 +44,7 @@ from ..annotations.records import (
 from ..annotations.writer import Verifications, loop_closure_messages, sequence_messages
 from ..detector.events import SequenceDecision
 from ..errors import DoseqslamError, OutputError, SourceError
+from ..sources import refuse_stream
 from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile
@@ -136,6 +137,7 @@ def detect_input(input_path: str | os.PathLike[str]) -> InputLog:
     Raises SourceError when the path is missing, unreadable or not a supported log.
     """
     path = Path(input_path)
+    refuse_stream(path)
     if path.is_dir():
         return _detect_rosbag2_folder(path)
     try:
