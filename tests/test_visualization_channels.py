@@ -340,3 +340,45 @@ def test_dash_for_standard_input_or_output_is_a_usage_error(
     assert error.startswith("doseqslam-logs: error: -: standard input and output are not")
     assert error.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
+
+
+# Issue #19 item 5: the output's compression and chunk size, as `mcap` has them.
+
+
+def _chunks(path: Path) -> tuple[set[str], int]:
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    return {c.compression for c in summary.chunk_indexes}, len(summary.chunk_indexes)
+
+
+def test_compression_and_chunk_size_shape_the_chunks_not_the_content(tmp_path: Path) -> None:
+    outputs = {}
+    for compression in ("zstd", "lz4", "none"):
+        output = tmp_path / f"{compression}.mcap"
+        args = ["annotate", str(ROS2), "-o", str(output), "--no-verify"]
+        assert main([*args, "--compression", compression, "--chunk-size", "65536"]) == 0
+        outputs[compression] = output
+    assert _chunks(outputs["zstd"]) == ({"zstd"}, _chunks(outputs["lz4"])[1])
+    assert _chunks(outputs["lz4"])[0] == {"lz4"}
+    assert _chunks(outputs["none"])[0] == {""}  # MCAP spells no compression ""
+    default = tmp_path / "default.mcap"
+    assert main(["annotate", str(ROS2), "-o", str(default), "--no-verify"]) == 0
+    assert _chunks(default)[1] < _chunks(outputs["zstd"])[1]  # 1 MiB chunks by default
+    records = [
+        {t: list(messages(o, t)) for t in ("/doseqslam/loop_closures", MATCH, MARKERS)}
+        for o in (default, *outputs.values())
+    ]
+    assert all(r == records[0] for r in records)  # the same messages, byte for byte
+
+
+@pytest.mark.parametrize(
+    "option", [["--compression", "gzip"], ["--chunk-size", "0"], ["--chunk-size", "1k"]]
+)
+def test_a_bad_compression_or_chunk_size_is_a_usage_error(
+    tmp_path: Path, option: list[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["annotate", str(ROS2), "-o", str(tmp_path / "out.mcap"), *option])
+    assert exit_.value.code == 2
+    assert list(tmp_path.iterdir()) == []

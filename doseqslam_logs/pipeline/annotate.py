@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from .. import __version__, waiting
@@ -30,6 +30,7 @@ from ..errors import (
 from ..sinks.atomic import check_output_path, scratch_file
 from ..sinks.mcap_writer import (
     Annotations,
+    OutputFormat,
     WriteSummary,
     refuse_same_file,
     write_annotated_mcap,
@@ -105,6 +106,8 @@ class AnnotateOptions:
     # The visualization channels (match images, image texts, 3-D lines; sinks.visualization),
     # False: `--no-visualization`, the output without them. Never in a sidecar.
     visualization: bool = True
+    # The output's chunks: compression and size (`--compression`, `--chunk-size`).
+    output_format: OutputFormat = field(default_factory=OutputFormat)
 
 
 @dataclass(frozen=True)
@@ -472,7 +475,9 @@ def _annotate(
             annotations, visualization=visualization_of(annotations, read_path, topic)
         )
     _announce(stage, "write")
-    written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
+    written = write_annotated_mcap(
+        read_path, output, annotations, sidecar=options.sidecar, output_format=options.output_format
+    )
     return AnnotateResult(
         log,
         output,

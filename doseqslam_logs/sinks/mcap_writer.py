@@ -52,7 +52,12 @@ from .visual_encoders import visual_encoder_for_profile
 from .visualization import Visualization, VisualWriter
 
 LIBRARY = f"doseqslam-logs/{__version__}"
-CHUNK_SIZE = 1024 * 1024  # fixed, like the compression: part of what makes outputs identical
+CHUNK_SIZE = 1024 * 1024  # the default; with the compression, part of the output's bytes
+COMPRESSIONS = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
 
 InputKind = Literal["mcap", "ros1-bag", "rosbag2"]
 T = TypeVar("T")
@@ -94,6 +99,21 @@ class Annotations:
             *sequence_messages(decisions, frame_times, method, parameters_hash, v),
         ]
         return cls(messages, metadata, frame_times)
+
+
+@dataclass(frozen=True)
+class OutputFormat:
+    """How the output's chunks are written (`--compression`, `--chunk-size`, as `mcap` has)."""
+
+    compression: str = "zstd"  # a key of COMPRESSIONS
+    chunk_size: int = CHUNK_SIZE  # bytes of messages per chunk, before compression
+
+    def __post_init__(self) -> None:
+        """Raises ValueError for an unknown compression or a chunk size below 1."""
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f"unknown compression {self.compression!r}")
+        if self.chunk_size < 1:
+            raise ValueError(f"the chunk size must be >= 1, got {self.chunk_size}")
 
 
 @dataclass(frozen=True)
@@ -586,9 +606,15 @@ def _copy_input(log: InputLog, writer: Writer, annotator: _Annotator) -> tuple[i
 
 
 def _write(
-    stream: BinaryIO, log: InputLog, annotations: Annotations, sidecar: bool, summary: WriteSummary
+    stream: BinaryIO,
+    log: InputLog,
+    annotations: Annotations,
+    sidecar: bool,
+    summary: WriteSummary,
+    output_format: OutputFormat,
 ) -> None:
-    writer = Writer(stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+    compression = COMPRESSIONS[output_format.compression]
+    writer = Writer(stream, chunk_size=output_format.chunk_size, compression=compression)
     writer.start(profile=log.profile, library=LIBRARY)
     visuals = None
     if annotations.visualization is not None and not sidecar:
@@ -608,6 +634,7 @@ def write_annotated_mcap(
     annotations: Annotations,
     *,
     sidecar: bool = False,
+    output_format: OutputFormat | None = None,
 ) -> WriteSummary:
     """Writes `output_path`: the input log's records unchanged plus our channels and metadata
     (only ours and the metadata with `sidecar=True`).
@@ -623,5 +650,5 @@ def write_annotated_mcap(
     refuse_same_file(log.path, output)
     summary = WriteSummary(output, log.kind, log.profile)
     with atomic_output(output) as stream:
-        _write(stream, log, annotations, sidecar, summary)
+        _write(stream, log, annotations, sidecar, summary, output_format or OutputFormat())
     return summary
