@@ -22,6 +22,7 @@ from mcap.records import Attachment, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from ..errors import SourceError
+from ..sources import refuse_stream
 from ..sources.mcap_source import DESERIALIZERS, describe_read_error, is_complete
 from .records import (
     FRAME_TIMES_ATTACHMENT,
@@ -143,6 +144,7 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
     a message of ours that lacks the fields every version wrote.
     """
     file = Path(path)
+    refuse_stream(file)
     closures: list[dict[str, Any]] = []
     sequences: list[dict[str, Any]] = []
     try:

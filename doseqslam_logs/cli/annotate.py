@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
+from ..sinks.mcap_writer import CHUNK_SIZE, COMPRESSIONS, OutputFormat
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..verification.summary import verification_summary
 from .params_args import (
@@ -99,6 +100,25 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="write only our channels and metadata, not the input's records",
     )
+    parser.add_argument(
+        "--compression",
+        choices=sorted(COMPRESSIONS),
+        default="zstd",
+        help="the output's chunk compression (default zstd)",
+    )
+    parser.add_argument(
+        "--chunk-size",
+        type=positive_int,
+        default=CHUNK_SIZE,
+        metavar="BYTES",
+        help=f"the output's chunk size, before compression (default {CHUNK_SIZE})",
+    )
+    parser.add_argument(
+        "--no-visualization",
+        dest="visualization",
+        action="store_false",
+        help="leave out the channels Foxglove draws (match images, image texts, 3-D lines)",
+    )
     add_parameter_options(parser)
     add_verification_options(parser)
 
@@ -129,6 +149,8 @@ def annotate_options_from_args(args: argparse.Namespace, workers: int) -> Annota
         verification=verification_from_args(args),
         intrinsics=intrinsics_from_args(args),
         max_pixels=args.max_pixels,
+        visualization=args.visualization,
+        output_format=OutputFormat(args.compression, args.chunk_size),
     )
 
 

@@ -14,6 +14,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from types import FrameType
 
 from .. import __version__
@@ -65,6 +66,15 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _names_a_standard_stream(args: argparse.Namespace) -> bool:
+    """Whether a path argument (input or output, alone or in a list) is `-`."""
+    for value in vars(args).values():
+        values = value if isinstance(value, list) else [value]
+        if any(isinstance(item, Path) and str(item) == "-" for item in values):
+            return True
+    return False
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())
 
@@ -73,6 +83,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run one subcommand; errors become one line on stderr and a documented exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if _names_a_standard_stream(args):
+        print(
+            "doseqslam-logs: error: -: standard input and output are not supported "
+            "(logs and outputs are read and written by seeking): give a file name",
+            file=sys.stderr,
+        )
+        return int(ExitCode.USAGE)
     try:
         with _sigterm_as_interrupt():
             code: int = args.run(args)

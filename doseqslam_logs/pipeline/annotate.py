@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import hashlib
 import json
@@ -13,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from .. import __version__, waiting
@@ -29,10 +30,12 @@ from ..errors import (
 from ..sinks.atomic import check_output_path, scratch_file
 from ..sinks.mcap_writer import (
     Annotations,
+    OutputFormat,
     WriteSummary,
     refuse_same_file,
     write_annotated_mcap,
 )
+from ..sinks.visualization import Visualization, read_trajectory, visual_loops
 from ..sources import is_mcap_file, open_source, pick_image_topic
 from ..sources.base import Promise, Source
 from ..sources.camera_info import read_camera_info
@@ -100,6 +103,11 @@ class AnnotateOptions:
     # An image whose header claims more pixels is skipped ("too large") before it is decoded,
     # so that a decompression bomb cannot take the machine's memory.
     max_pixels: int = DEFAULT_MAX_PIXELS
+    # The visualization channels (match images, image texts, 3-D lines; sinks.visualization),
+    # False: `--no-visualization`, the output without them. Never in a sidecar.
+    visualization: bool = True
+    # The output's chunks: compression and size (`--compression`, `--chunk-size`).
+    output_format: OutputFormat = field(default_factory=OutputFormat)
 
 
 @dataclass(frozen=True)
@@ -182,6 +190,12 @@ def verify_decisions(
     return Verification(options.verification, intrinsics, origin, verified, stats, wall_s)
 
 
+def visualization_of(annotations: Annotations, read_path: Path, topic: str) -> Visualization:
+    """What the visualization channels draw for these annotations of the log."""
+    loops = visual_loops(annotations.messages)
+    return Visualization(topic, loops, read_trajectory(read_path))
+
+
 def _hash_in_background(path: Path) -> Future[str]:
     """`source_sha256` on its own thread, beside the replay (seconds on an hour-long log)."""
     future: Future[str] = Future()
@@ -198,6 +212,9 @@ def _hash_in_background(path: Path) -> Future[str]:
 
 def source_sha256(path: Path) -> str:
     """sha256 of a log file; of a rosbag2 folder, of its files' names and bytes in name order."""
+    if not (path.is_file() or path.is_dir()) and path.exists():
+        # A pipe or device: reading it would block or consume it; the run's reader refuses it.
+        raise OSError(errno.ESPIPE, "not a regular file", str(path))
     digest = hashlib.sha256()
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
     for file in files:
@@ -453,8 +470,14 @@ def _annotate(
         metadata.to_entries(),
         None if verification is None else verification.decisions,
     )
+    if options.visualization and not options.sidecar:
+        annotations = replace(
+            annotations, visualization=visualization_of(annotations, read_path, topic)
+        )
     _announce(stage, "write")
-    written = write_annotated_mcap(read_path, output, annotations, sidecar=options.sidecar)
+    written = write_annotated_mcap(
+        read_path, output, annotations, sidecar=options.sidecar, output_format=options.output_format
+    )
     return AnnotateResult(
         log,
         output,

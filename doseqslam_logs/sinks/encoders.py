@@ -74,27 +74,10 @@ def check_fields(type_name: str, expected: list[str], fields: Mapping[str, Any])
         raise ValueError(f"{type_name}: missing fields {missing}, unknown fields {extra}")
 
 
-class _RosEncoder(MessageEncoder):
-    """Shared by ROS 1 and ROS 2: rosbags' typestore, filled from our .msg files."""
+class RosBuilder:
+    """Rosbags message objects from plain message dicts, for the types of `typestore`."""
 
-    ros_version: ClassVar[int]
-
-    def __init__(self) -> None:
-        self.typestore: Typestore = get_typestore(Stores.EMPTY)  # only builtin Time, Duration
-        self.msg_texts = {t.name: read_schema(self._msg_file(t)) for t in MESSAGE_TYPES}
-        types = {}
-        for message_type in MESSAGE_TYPES:
-            text = self.msg_texts[message_type.name]
-            types.update(get_types_from_msg(text, self.typename(message_type)))
-        self.typestore.register(types)
-
-    def _msg_file(self, message_type: MessageType) -> str:
-        return f"ros{self.ros_version}/{message_type.name}.msg"
-
-    @staticmethod
-    def typename(message_type: MessageType) -> str:
-        """The name rosbags knows the type by (always the ROS 2 form)."""
-        return f"{ROS_PACKAGE}/msg/{message_type.name}"
+    typestore: Typestore
 
     def build(self, typename: str, fields: Mapping[str, Any]) -> object:
         """The rosbags message object for a plain message dict.
@@ -119,6 +102,29 @@ class _RosEncoder(MessageEncoder):
                 return np.asarray(value, dtype=_NUMPY_TYPES[item_desc[1][0]])
             return [self._value(item_desc, item) for item in value]
         return value
+
+
+class _RosEncoder(RosBuilder, MessageEncoder):
+    """Shared by ROS 1 and ROS 2: rosbags' typestore, filled from our .msg files."""
+
+    ros_version: ClassVar[int]
+
+    def __init__(self) -> None:
+        self.typestore: Typestore = get_typestore(Stores.EMPTY)  # only builtin Time, Duration
+        self.msg_texts = {t.name: read_schema(self._msg_file(t)) for t in MESSAGE_TYPES}
+        types = {}
+        for message_type in MESSAGE_TYPES:
+            text = self.msg_texts[message_type.name]
+            types.update(get_types_from_msg(text, self.typename(message_type)))
+        self.typestore.register(types)
+
+    def _msg_file(self, message_type: MessageType) -> str:
+        return f"ros{self.ros_version}/{message_type.name}.msg"
+
+    @staticmethod
+    def typename(message_type: MessageType) -> str:
+        """The name rosbags knows the type by (always the ROS 2 form)."""
+        return f"{ROS_PACKAGE}/msg/{message_type.name}"
 
 
 class Ros2Encoder(_RosEncoder):

@@ -44,13 +44,23 @@ from ..annotations.records import (
 from ..annotations.writer import Verifications, loop_closure_messages, sequence_messages
 from ..detector.events import SequenceDecision
 from ..errors import DoseqslamError, OutputError, SourceError
-from ..sources import chunk_limits  # noqa: F401 - the input's chunks are copied within the cap
+from ..sources import (
+    chunk_limits,  # noqa: F401 - the input's chunks are copied within the cap
+    refuse_stream,
+)
 from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile
+from .visual_encoders import visual_encoder_for_profile
+from .visualization import Visualization, VisualWriter
 
 LIBRARY = f"doseqslam-logs/{__version__}"
-CHUNK_SIZE = 1024 * 1024  # fixed, like the compression: part of what makes outputs identical
+CHUNK_SIZE = 1024 * 1024  # the default; with the compression, part of the output's bytes
+COMPRESSIONS = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
 
 InputKind = Literal["mcap", "ros1-bag", "rosbag2"]
 T = TypeVar("T")
@@ -63,6 +73,7 @@ class Annotations:
     messages: Sequence[TimedMessage]
     metadata: Mapping[str, str]  # the `doseqslam` metadata record: version, parameters, ...
     frame_times: FrameTimes | None = None  # written as the FRAME_TIMES_ATTACHMENT
+    visualization: Visualization | None = None  # None: no visualization channels
 
     def __post_init__(self) -> None:
         """Raises TypeError when the metadata is not a mapping of strings to strings."""
@@ -94,6 +105,21 @@ class Annotations:
 
 
 @dataclass(frozen=True)
+class OutputFormat:
+    """How the output's chunks are written (`--compression`, `--chunk-size`, as `mcap` has)."""
+
+    compression: str = "zstd"  # a key of COMPRESSIONS
+    chunk_size: int = CHUNK_SIZE  # bytes of messages per chunk, before compression
+
+    def __post_init__(self) -> None:
+        """Raises ValueError for an unknown compression or a chunk size below 1."""
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f"unknown compression {self.compression!r}")
+        if self.chunk_size < 1:
+            raise ValueError(f"the chunk size must be >= 1, got {self.chunk_size}")
+
+
+@dataclass(frozen=True)
 class InputLog:
     """What `detect_input` found: the kind of log, the path to read and the MCAP profile."""
 
@@ -112,6 +138,7 @@ class WriteSummary:
     copied_messages: int = 0  # input messages copied (0 for a sidecar)
     written: dict[str, int] = field(default_factory=dict)  # our messages per topic
     replaced_topics: list[str] = field(default_factory=list)  # input /doseqslam/ channels
+    visualized: dict[str, int] = field(default_factory=dict)  # visualization messages per topic
 
 
 class _Storage(Protocol):
@@ -133,6 +160,7 @@ def detect_input(input_path: str | os.PathLike[str]) -> InputLog:
     Raises SourceError when the path is missing, unreadable or not a supported log.
     """
     path = Path(input_path)
+    refuse_stream(path)
     if path.is_dir():
         return _detect_rosbag2_folder(path)
     try:
@@ -244,8 +272,15 @@ def refuse_same_file(input_path: Path, output_path: Path) -> None:
 class _Annotator:
     """Writes our channels and messages into the output, interleaved by log time."""
 
-    def __init__(self, writer: Writer, encoder: MessageEncoder, messages: Sequence[TimedMessage]):
+    def __init__(
+        self,
+        writer: Writer,
+        encoder: MessageEncoder,
+        messages: Sequence[TimedMessage],
+        visuals: VisualWriter | None = None,
+    ):
         self.writer = writer
+        self.visuals = visuals
         self.encoder = encoder
         # Sorting by (log time, type, index) fixes the order whatever order the caller used.
         self.pending = sorted(messages, key=lambda m: m.sort_key)
@@ -255,12 +290,25 @@ class _Annotator:
 
     def write_until(self, log_time_ns: int | None) -> None:
         """Writes our messages with log time <= log_time_ns (all of them for None)."""
+        if self.visuals is not None:
+            self.visuals.write_until(log_time_ns)
         while self.position < len(self.pending):
             message = self.pending[self.position]
             if log_time_ns is not None and message.log_time_ns > log_time_ns:
                 return
             self._write(message)
             self.position += 1
+
+    def input_channel(
+        self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
+    ) -> None:
+        """Called for each input channel copied (the visualization reuses the camera's)."""
+        if self.visuals is not None:
+            self.visuals.input_channel(topic, encoding, schema_id, metadata)
+
+    def visualized(self) -> dict[str, int]:
+        """Writes the rest of the visualization; its messages per topic."""
+        return {} if self.visuals is None else self.visuals.finish()
 
     def finish(self, metadata: Mapping[str, str], frame_times: FrameTimes | None) -> dict[str, int]:
         """Writes the rest of our messages, the frame times and the `doseqslam` metadata."""
@@ -359,6 +407,9 @@ class _McapCopier:
         self.channel_ids[channel.id] = self.writer.register_channel(
             channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
         )
+        self.annotator.input_channel(
+            channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
+        )
 
     def _output_schema(self, schema_id: int, path: Path) -> int:
         if schema_id == 0:  # a channel without schema
@@ -436,6 +487,7 @@ class _BagCopier:
             self.channel_ids[key] = self.writer.register_channel(
                 topic, encoding, schema_id, metadata
             )
+            self.annotator.input_channel(topic, encoding, schema_id, metadata)
 
     def message(self, key: Any, timestamp: int, data: bytes) -> None:
         channel_id = self.channel_ids.get(key)
@@ -557,13 +609,24 @@ def _copy_input(log: InputLog, writer: Writer, annotator: _Annotator) -> tuple[i
 
 
 def _write(
-    stream: BinaryIO, log: InputLog, annotations: Annotations, sidecar: bool, summary: WriteSummary
+    stream: BinaryIO,
+    log: InputLog,
+    annotations: Annotations,
+    sidecar: bool,
+    summary: WriteSummary,
+    output_format: OutputFormat,
 ) -> None:
-    writer = Writer(stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+    compression = COMPRESSIONS[output_format.compression]
+    writer = Writer(stream, chunk_size=output_format.chunk_size, compression=compression)
     writer.start(profile=log.profile, library=LIBRARY)
-    annotator = _Annotator(writer, encoder_for_profile(log.profile), annotations.messages)
+    visuals = None
+    if annotations.visualization is not None and not sidecar:
+        encoder = visual_encoder_for_profile(log.profile)
+        visuals = VisualWriter(writer, encoder, log.path, annotations.visualization)
+    annotator = _Annotator(writer, encoder_for_profile(log.profile), annotations.messages, visuals)
     if not sidecar:
         summary.copied_messages, summary.replaced_topics = _copy_input(log, writer, annotator)
+    summary.visualized = annotator.visualized()
     summary.written = annotator.finish(annotations.metadata, annotations.frame_times)
     writer.finish()  # type: ignore[no-untyped-call]  # mcap leaves it unannotated
 
@@ -574,6 +637,7 @@ def write_annotated_mcap(
     annotations: Annotations,
     *,
     sidecar: bool = False,
+    output_format: OutputFormat | None = None,
 ) -> WriteSummary:
     """Writes `output_path`: the input log's records unchanged plus our channels and metadata
     (only ours and the metadata with `sidecar=True`).
@@ -589,5 +653,5 @@ def write_annotated_mcap(
     refuse_same_file(log.path, output)
     summary = WriteSummary(output, log.kind, log.profile)
     with atomic_output(output) as stream:
-        _write(stream, log, annotations, sidecar, summary)
+        _write(stream, log, annotations, sidecar, summary, output_format or OutputFormat())
     return summary

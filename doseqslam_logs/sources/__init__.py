@@ -7,6 +7,8 @@ is one new module plus one entry.
 
 from __future__ import annotations
 
+import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 
@@ -67,7 +69,24 @@ FORMATS: list[tuple[Probe, Callable[[Path], Source]]] = [
 ]
 
 
+def refuse_stream(path: Path) -> None:
+    """Raises SourceError when `path` is a pipe, socket or device: logs are read by seeking
+    (an index, a second reader), and opening a FIFO with no writer would block for ever."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # missing or unreadable: the caller says which
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return
+    kinds = {stat.S_IFIFO: "a pipe (FIFO)", stat.S_IFSOCK: "a socket", stat.S_IFCHR: "a device"}
+    kind = kinds.get(stat.S_IFMT(mode), "a device")
+    raise SourceError(
+        f"{path}: the log is {kind}, not a file: logs are read by seeking; save it to a file"
+    )
+
+
 def _head(path: Path) -> bytes:
+    refuse_stream(path)
     if path.is_dir():
         return b""
     try:
@@ -132,6 +151,8 @@ def pick_image_topic(source: Source, topic: str | None = None) -> str:
     names = [c.topic for c in channels if c.is_image]
     listing = ", ".join(names)
     if topic is None:
+        # An annotated log's match images (/doseqslam/match/...) are never its camera.
+        names = [n for n in names if not n.startswith("/doseqslam/")] or names
         if len(names) == 1:
             return names[0]
         if not names:

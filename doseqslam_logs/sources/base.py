@@ -96,6 +96,13 @@ class Source(Protocol):
         decoded. SourceError while iterating when the log or a message cannot be read."""
         ...
 
+    def raw_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[tuple[int, bytes]]:
+        """(log time, message bytes as stored) of `topic` within [start_ns, end_ns), in
+        log-time order: what the writer copies, for republishing a message unchanged."""
+        ...
+
     def promised_messages(self, topic: str) -> Promise | None:
         """The messages of `topic` the log's index or statistics promise (None: no such
         record, or one that counts the data it was read from)."""

@@ -531,6 +531,24 @@ class McapSource:
                 f"{RECOVER_HINT}"
             ) from exc
 
+    def raw_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[tuple[int, bytes]]:
+        """(log time, message bytes as stored) of `topic` in [start_ns, end_ns), log-time order.
+
+        Raises SourceError (while iterating) for a damaged file.
+        """
+        try:
+            with open(self.path, "rb") as file:
+                for _, _, message in self._records(file, topic, start_ns, end_ns):
+                    yield message.log_time, bytes(message.data)
+        except DoseqslamError:
+            raise
+        except Exception as exc:
+            raise SourceError(
+                f"{self.path}: cannot read the messages of {topic} ({describe_read_error(exc)})"
+            ) from exc
+
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
         """Every message of `topic` in log-time order, decoded with the file's schema.
 

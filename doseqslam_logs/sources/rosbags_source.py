@@ -202,6 +202,27 @@ class RosbagsSource:
                 f"({_one_line(exc)})"
             ) from exc
 
+    def raw_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[tuple[int, bytes]]:
+        """(log time, message bytes) of `topic` in [start_ns, end_ns), in log-time order.
+
+        Raises SourceError (while iterating) when the bag turns out corrupt.
+        """
+        connections = [c for c in self._reader.connections if c.topic == topic]
+        if not connections:  # rosbags would yield every message of the bag
+            return
+        try:
+            messages = self._reader.messages(connections=connections, start=start_ns, stop=end_ns)
+            for _, log_time, payload in messages:
+                yield log_time, bytes(payload)
+        except DoseqslamError:
+            raise
+        except Exception as exc:
+            raise SourceError(
+                f"{self.path}: cannot read the messages of {topic} ({_one_line(exc)})"
+            ) from exc
+
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
         """Every message of `topic` in log-time order, decoded (none for a missing topic).
 

@@ -1,14 +1,24 @@
 // Opens annotated logs in the Foxglove Studio 1.48 web app (npm @foxglove/studio-base's
 // prebuilt bundle) in headless Chromium and prints, per log, one JSON line: the topics the
 // app lists and the text of its Problems tab, with a screenshot of each tab. Usage:
-//   node foxglove_check.cjs MODULES_DIR CHROMIUM OUT_DIR LOG.mcap...
+//   node foxglove_check.cjs MODULES_DIR CHROMIUM OUT_DIR [--layout LAYOUT.json AT] LOG.mcap...
+// With --layout, each log opens in that Foxglove layout instead of the default one, and the
+// screenshot "layout" is taken at fraction AT (0..1) of the log's time span.
 // MODULES_DIR holds node_modules with playwright-core, react 17, react-dom 17 and studio-base.
 "use strict";
 const fs = require("fs");
 const http = require("http");
 const path = require("path");
 
-const [modules, chromium, outDir, ...logs] = process.argv.slice(2);
+const [modules, chromium, outDir, ...rest] = process.argv.slice(2);
+const layoutFile = rest[0] === "--layout" ? rest[1] : undefined;
+const layoutAt = layoutFile ? Number(rest[2]) : undefined;
+const logs = layoutFile ? rest.slice(3) : rest;
+// The layout, stored as Foxglove's layout storage holds it, and selected in the user profile.
+const LAYOUT_ID = "doseqslam";
+const storedLayout = layoutFile && { id: LAYOUT_ID, name: "doseqslam", permission: "CREATOR_WRITE",
+  baseline: { data: JSON.parse(fs.readFileSync(layoutFile, "utf8")), savedAt: undefined },
+  working: undefined, syncInfo: undefined };
 const nm = path.join(modules, "node_modules");
 const { chromium: launcher } = require(path.join(nm, "playwright-core"));
 const assets = path.join(nm, "@foxglove", "studio-base", "assets");
@@ -24,7 +34,7 @@ const BOOT = `(async () => {
   const values = {};
   const settings = { get: (k) => values[k], set: async (k, v) => { values[k] = v; },
     addChangeListener() {}, removeChangeListener() {} };
-  const layouts = new Map();
+  const layouts = new Map(self.storedLayout ? [[self.storedLayout.id, self.storedLayout]] : []);
   const storage = { list: async () => [...layouts.values()], get: async (ns, id) => layouts.get(id),
     put: async (ns, l) => (layouts.set(l.id, l), l), delete: async (ns, id) => { layouts.delete(id); },
     importLayouts: async () => {} };
@@ -80,6 +90,12 @@ async function main() {
   try {
     for (const [i, log] of logs.entries()) {
       const page = await browser.newPage({ viewport: { width: 1600, height: 1000 } });
+      if (storedLayout) {
+        await page.addInitScript(([layout]) => {
+          self.storedLayout = layout;
+          localStorage.setItem("studio.profile-data", JSON.stringify({ currentLayoutId: layout.id }));
+        }, [storedLayout]);
+      }
       const errors = [];
       page.on("pageerror", (e) => errors.push(String(e)));
       const url = `${origin}/?ds=remote-file&ds.url=${encodeURIComponent(`${origin}/data/${i}/${path.basename(log)}`)}`;
@@ -96,10 +112,19 @@ async function main() {
       await page.waitForTimeout(500);
       await page.screenshot({ path: shot("problems") });
       const problems = (await text()).split("\n");
-      // Our loop closure decoded: the Raw Messages panel of the default layout, at 90 % of the log.
-      await page.getByPlaceholder("/some/topic.msgs[0].field").fill("/doseqslam/loop_closures");
       // The scrubber is the bar just above the playback buttons, across the window.
       const buttons = await page.getByTitle("Seek backward").boundingBox();
+      if (storedLayout) {
+        await page.mouse.click(page.viewportSize().width * layoutAt, buttons.y - 24);
+        await page.waitForTimeout(4000);
+        await page.screenshot({ path: shot("layout") });
+        const message = (await text()).split("\n"); // the panels' text after the seek
+        console.log(JSON.stringify({ log, topics, problems, message, errors }));
+        await page.close();
+        continue;
+      }
+      // Our loop closure decoded: the Raw Messages panel of the default layout, at 90 % of the log.
+      await page.getByPlaceholder("/some/topic.msgs[0].field").fill("/doseqslam/loop_closures");
       await page.mouse.click(page.viewportSize().width * 0.9, buttons.y - 24);
       await page.waitForTimeout(2000);
       await page.screenshot({ path: shot("message") });

@@ -1,0 +1,275 @@
+"""Visualization channels: what Foxglove and Lichtblick draw with their own panels.
+
+For each reported loop closure, at the query image's log time:
+- the matched frame's image message, its bytes unchanged, on `match_topic(camera topic)` (same
+  schema as the camera topic): two Image panels show query and match side by side;
+- a text on the query image (`/doseqslam/match/annotations`) naming the match, its time and
+  the verification result;
+- with a pose topic, the line from the query's to the match's position, highlighted
+  (`/doseqslam/match/marker`).
+With a pose topic, `/doseqslam/markers` holds the whole trajectory and one line per reported
+loop closure, written once, at the log's first message: a viewer seeking anywhere shows the
+latest message of each topic, so the run's picture and the current loop closure show wherever
+one scrubs (a scene built up message by message would show only its last line after a seek).
+
+Memory is bounded by the loop closures and the poses, never by the images: the match image is
+read again from the input (a second reader, one ranged read per loop closure) when the writer,
+copying the input in log-time order, reaches the query's time. The match is older than the
+query, so the writer has already registered the camera channel whose schema it reuses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.writer import Writer
+
+from ..annotations.records import OUR_TOPIC_PREFIX, LoopClosureRecord, TimedMessage
+from ..errors import SourceError
+from ..sources import open_source
+from ..sources.base import Source
+from ..sources.poses import ODOMETRY, POSE_TYPES, PoseTrack, canonical_type, read_poses
+from .visual_encoders import (
+    LINE_LIST,
+    LINE_STRIP,
+    Badge,
+    Lines,
+    SchemaInfo,
+    Text,
+    VisualEncoder,
+)
+
+MARKERS_TOPIC = OUR_TOPIC_PREFIX + "markers"
+MATCH_MARKER_TOPIC = OUR_TOPIC_PREFIX + "match/marker"
+ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
+DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
+TRAJECTORY_COLOR = (0.6, 0.6, 0.6, 1.0)
+LOOP_COLOR = (0.1, 0.8, 0.2, 1.0)
+CURRENT_LOOP_COLOR = (1.0, 0.3, 0.1, 1.0)
+BADGE_PX = 20.0  # the square drawn on the query image (Foxglove 1.48 draws no texts)
+TEXT_COLOR = (1.0, 1.0, 1.0, 1.0)
+TEXT_BACKGROUND = (0.0, 0.0, 0.0, 0.6)
+
+
+def match_topic(camera_topic: str) -> str:
+    """Where the match images go: `.../compressed` for a compressed camera topic, as
+    image_transport names it, so viewers see the same kind of image topic."""
+    suffix = "/image/compressed" if camera_topic.endswith("/compressed") else "/image"
+    return OUR_TOPIC_PREFIX + "match" + suffix
+
+
+@dataclass(frozen=True)
+class VisualLoop:
+    """One reported loop closure as drawn: the query, its (refined) match and a caption."""
+
+    query_log_time_ns: int
+    query_time_ns: int  # header stamp, else log time: what the images and poses are timed by
+    match_log_time_ns: int
+    match_time_ns: int
+    caption: str
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """The pose topic drawn in the 3-D panel, in its messages' frame."""
+
+    topic: str
+    frame_id: str
+    track: PoseTrack
+
+    def position(self, time_ns: int) -> tuple[float, float, float]:
+        """The position at `time_ns`, interpolated (the end poses outside the track)."""
+        times, positions = self.track.times_ns, self.track.positions
+        x, y, z = (float(np.interp(time_ns, times, positions[:, k])) for k in range(3))
+        return x, y, z
+
+
+@dataclass(frozen=True)
+class Visualization:
+    """What the writer draws besides our messages (see the module's docstring)."""
+
+    camera_topic: str
+    loops: Sequence[VisualLoop]  # in query log-time order
+    trajectory: Trajectory | None
+
+
+def caption(record: LoopClosureRecord) -> str:
+    """E.g. 'match: frame 88 at 1700000044.000 s, accepted (57 inliers, essential)'."""
+    match = record.matched
+    when = f"frame {match.index} at {match.time_ns / 1e9:.3f} s"
+    if record.verification in ("off", ""):
+        return f"match: {when}, not verified (--no-verify)"
+    detail = f"{record.inliers} inliers, {record.verification_model}"
+    return f"match: {when}, {record.verification} ({detail})"
+
+
+def visual_loops(messages: Iterable[TimedMessage]) -> list[VisualLoop]:
+    """The reported loop closures among our messages, in query log-time order."""
+    records = [m.record for m in messages if isinstance(m.record, LoopClosureRecord)]
+    loops = [
+        VisualLoop(
+            r.query.log_time_ns,
+            r.query.time_ns,
+            r.matched.log_time_ns,
+            r.matched.time_ns,
+            caption(r),
+        )
+        for r in records
+        if r.reported
+    ]
+    return sorted(loops, key=lambda loop: loop.query_log_time_ns)
+
+
+def choose_pose_topic(source: Source) -> str | None:
+    """The log's first nav_msgs/Odometry topic (what a robot itself estimates), else its first
+    topic of another pose type (PoseStamped, PoseWithCovarianceStamped, foxglove.PoseInFrame);
+    None without one. 'First' is the order of the log's channels."""
+    topics = [(c.topic, canonical_type(c.message_type)) for c in source.channels()]
+    poses = [(topic, kind) for topic, kind in topics if kind in POSE_TYPES]
+    odometry = [topic for topic, kind in poses if kind == ODOMETRY]
+    candidates = odometry or [topic for topic, _ in poses]
+    return candidates[0] if candidates else None
+
+
+def read_trajectory(path: Path, topic: str | None = None) -> Trajectory | None:
+    """The pose topic (`topic`, else `choose_pose_topic`) as a Trajectory; None when the log
+    has none, or its poses cannot be read (the 3-D lines are then left out, nothing else)."""
+    try:
+        with open_source(path) as source:
+            topic = topic or choose_pose_topic(source)
+            if topic is None:
+                return None
+            first = next(iter(source.messages(topic)), None)
+        track = read_poses(path, topic)
+    except SourceError:
+        return None
+    frame_id = _frame_id(None if first is None else first.message)
+    return Trajectory(topic, frame_id or DEFAULT_FRAME_ID, track)
+
+
+def _frame_id(message: Any) -> str:
+    """header.frame_id (ROS) or frame_id (foxglove.PoseInFrame, protobuf or JSON dict)."""
+    header = _get(message, "header")
+    value = _get(header, "frame_id") if header is not None else _get(message, "frame_id")
+    return value if isinstance(value, str) else ""
+
+
+def _get(value: Any, name: str) -> Any:
+    return value.get(name) if isinstance(value, dict) else getattr(value, name, None)
+
+
+class VisualWriter:
+    """Writes the visualization channels into the output, interleaved by log time."""
+
+    def __init__(
+        self, writer: Writer, encoder: VisualEncoder, read_path: Path, plan: Visualization
+    ) -> None:
+        self.writer, self.encoder, self.plan = writer, encoder, plan
+        self.read_path = read_path
+        self.position = 0  # next loop to draw
+        self.trajectory_written = plan.trajectory is None
+        self.camera: tuple[int, str, dict[str, str]] | None = None  # schema, encoding, metadata
+        self.channel_ids: dict[str, int] = {}
+        self.written: dict[str, int] = {}
+        self._source: Source | None = None
+
+    def input_channel(
+        self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
+    ) -> None:
+        """Called for each input channel copied: the camera's schema is the match images'."""
+        if topic == self.plan.camera_topic and self.camera is None:
+            self.camera = (schema_id, encoding, dict(metadata))
+
+    def write_until(self, log_time_ns: int | None) -> None:
+        """Writes what is due at log times <= log_time_ns (everything for None)."""
+        if not self.trajectory_written:
+            first = self.plan.loops[0].query_log_time_ns if self.plan.loops else 0
+            self._write_trajectory(first if log_time_ns is None else log_time_ns)
+        loops = self.plan.loops
+        while self.position < len(loops):
+            loop = loops[self.position]
+            if log_time_ns is not None and loop.query_log_time_ns > log_time_ns:
+                return
+            self._write_loop(loop)
+            self.position += 1
+
+    def finish(self) -> dict[str, int]:
+        """Writes the rest; returns the messages written per topic."""
+        self.write_until(None)
+        if self._source is not None:
+            self._source.close()
+        return dict(sorted(self.written.items()))
+
+    def _write_trajectory(self, log_time_ns: int) -> None:
+        self.trajectory_written = True
+        trajectory = self.plan.trajectory
+        assert trajectory is not None
+        points = [(float(x), float(y), float(z)) for x, y, z in trajectory.track.positions]
+        path = Lines("doseqslam/trajectory", 0, LINE_STRIP, points, TRAJECTORY_COLOR, 0.1)
+        ends = [end for loop in self.plan.loops for end in self._ends(trajectory, loop)]
+        loops = Lines("doseqslam/loop_closures", 0, LINE_LIST, ends, LOOP_COLOR, 0.08)
+        data = self.encoder.scene(trajectory.frame_id, log_time_ns, [path, loops])
+        self._add(MARKERS_TOPIC, self.encoder.scene_schema, log_time_ns, data)
+
+    @staticmethod
+    def _ends(trajectory: Trajectory, loop: VisualLoop) -> list[tuple[float, float, float]]:
+        return [trajectory.position(loop.query_time_ns), trajectory.position(loop.match_time_ns)]
+
+    def _write_loop(self, loop: VisualLoop) -> None:
+        time = loop.query_log_time_ns
+        self._write_match_image(loop)
+        text = Text(BADGE_PX + 8, 4.0, loop.caption, 12.0, TEXT_COLOR, TEXT_BACKGROUND)
+        badge = Badge(4.0, 4.0, BADGE_PX, LOOP_COLOR)
+        annotations = self.encoder.annotations(loop.query_time_ns, [text], [badge])
+        self._add(ANNOTATIONS_TOPIC, self.encoder.annotations_schema, time, annotations)
+        trajectory = self.plan.trajectory
+        if trajectory is not None:
+            ends = self._ends(trajectory, loop)
+            lines = Lines("doseqslam/match", 0, LINE_LIST, ends, CURRENT_LOOP_COLOR, 0.6)
+            data = self.encoder.scene(trajectory.frame_id, time, [lines])
+            self._add(MATCH_MARKER_TOPIC, self.encoder.scene_schema, time, data)
+
+    def _write_match_image(self, loop: VisualLoop) -> None:
+        if self.camera is None:
+            return  # the camera channel was not copied (a sidecar): no schema to reuse
+        data = self._read_match(loop)
+        topic = match_topic(self.plan.camera_topic)
+        if topic not in self.channel_ids:
+            schema_id, encoding, metadata = self.camera
+            self.channel_ids[topic] = self.writer.register_channel(
+                topic, encoding, schema_id, metadata
+            )
+        self._add_message(topic, loop.query_log_time_ns, data)
+
+    def _read_match(self, loop: VisualLoop) -> bytes:
+        """The match frame's message: the first of the camera topic at its log time."""
+        if self._source is None:
+            self._source = open_source(self.read_path)
+        start = loop.match_log_time_ns
+        messages = self._source.raw_messages(self.plan.camera_topic, start, start + 1)
+        for _, data in messages:
+            return data
+        raise SourceError(
+            f"{self.read_path}: the image of {self.plan.camera_topic} at log time {start} "
+            "is not found again (the log changed under us)"
+        )
+
+    def _add(self, topic: str, schema: Any, log_time_ns: int, data: bytes) -> None:
+        if topic not in self.channel_ids:
+            self.channel_ids[topic] = self._register(topic, schema())
+        self._add_message(topic, log_time_ns, data)
+
+    def _register(self, topic: str, schema: SchemaInfo) -> int:
+        schema_id = self.writer.register_schema(schema.name, schema.encoding, schema.data)
+        encoding = self.encoder.message_encoding
+        return self.writer.register_channel(topic, encoding, schema_id, schema.channel_metadata)
+
+    def _add_message(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        sequence = self.written.get(topic, 0)
+        channel_id = self.channel_ids[topic]
+        self.writer.add_message(channel_id, log_time_ns, data, log_time_ns, sequence & 0xFFFFFFFF)
+        self.written[topic] = sequence + 1
