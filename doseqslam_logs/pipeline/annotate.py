@@ -57,6 +57,7 @@ from .decode import (
     TimeSource,
     decoded_frames,
 )
+from .feature_health import FeatureHealth, run_feature_health
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
@@ -107,6 +108,8 @@ class AnnotateResult:
     promise: Promise | None = None
     unattributed: int = 0  # messages of undeclared topics (a .db3's rows of unknown topic ids)
     verification: Verification | None = None  # None when it was off
+    # Whether the frames held enough features to segment and verify (None: not measured).
+    health: FeatureHealth | None = None
 
     @property
     def loop_closures(self) -> int:
@@ -205,9 +208,12 @@ class _TimesRecorder:
 
     def __init__(self) -> None:
         self.pairs: list[tuple[int, int | None]] = []
+        self.first_size = ""  # "WxH" of the first frame, for the feature-poor warning
 
     def __call__(self, frames: Iterable[Frame]) -> Iterator[Frame]:
         for frame in frames:
+            if not self.pairs:
+                self.first_size = f"{frame.image.shape[1]}x{frame.image.shape[0]}"
             self.pairs.append((frame.log_time_ns, frame.header_stamp_ns))
             yield frame
 
@@ -425,6 +431,9 @@ def _annotate(
     )
     if verification is not None:
         metadata = verification.recorded_in(metadata)
+    verified = None if verification is None else verification.decisions.values()
+    health = run_feature_health(params, result, verified, recorder.first_size)
+    metadata = replace(metadata, feature_poor_json=health.metadata_json())
     annotations = Annotations.from_decisions(
         result.decisions,
         frame_times,
@@ -446,4 +455,5 @@ def _annotate(
         promise,
         unattributed,
         verification,
+        health,
     )
