@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 
 from doseqslam_logs.annotations.reader import read_annotations
@@ -117,3 +118,18 @@ def test_a_method_without_feature_segmentation_is_not_measured() -> None:
     unmeasured = SegmentationFeatures.of("none", 10, [-1, -1, -1], "64x32")
     health = feature_health(unmeasured, None, [3], 300, 0)
     assert (unmeasured.frames, health.poor, health.note()) == (0, False, "")
+
+
+def test_evaluate_images_on_64x32_rtabmap_frames_says_so(shared_data, tmp_path, capsys) -> None:
+    rtabmap = shared_data / "rtabmap_samples_loop"
+    folder = tmp_path / "rtabmap_64x32"
+    folder.mkdir()
+    for _, gray in shrink_log.folder_frames(rtabmap / "images", 1.0):
+        name = folder / f"{len(list(folder.iterdir())) + 1}.png"
+        cv2.imwrite(str(name), shrink_log.shrink_gray(gray, 64, 32))
+    args = ["evaluate", "--images", folder, "--fps", "1", "--gt", rtabmap / "samples_GT.bmp"]
+    code, report = cli(capsys, *args)
+    assert code == 0
+    assert "WARNING: feature-poor frames: 84 of 84 frames (100 %)" in report and ADVICE in report
+    code, text = cli(capsys, *args, "--json")
+    assert json.loads(text)["features"]["feature_poor"] is True

@@ -57,7 +57,7 @@ from .decode import (
     TimeSource,
     decoded_frames,
 )
-from .feature_health import FeatureHealth, run_feature_health
+from .feature_health import FeatureHealth, check_feasibility, run_feature_health
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
@@ -431,8 +431,9 @@ def _annotate(
     )
     if verification is not None:
         metadata = verification.recorded_in(metadata)
-    verified = None if verification is None else verification.decisions.values()
-    health = run_feature_health(params, result, verified, recorder.first_size)
+    checks = None if verification is None else check_feasibility(verification.decisions.values())
+    accepted = result.loop_closures if verification is None else verification.stats.accepted
+    health = run_feature_health(params, result, checks, accepted, recorder.first_size)
     metadata = replace(metadata, feature_poor_json=health.metadata_json())
     annotations = Annotations.from_decisions(
         result.decisions,

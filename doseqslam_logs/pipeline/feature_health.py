@@ -174,21 +174,22 @@ def feature_health(
     return FeatureHealth(segmentation, checks, tuple(warnings))
 
 
+def check_feasibility(verified: Iterable[VerifiedDecision]) -> CheckFeasibility:
+    """`CheckFeasibility` of the verification stage's decisions."""
+    reasons = (check.verdict.reason for item in verified for check in item.checks)
+    return CheckFeasibility.of(reasons, SKIPPED_REASONS)
+
+
 def run_feature_health(
     params: Parameters,
     result: ReplayResult,
-    verified: Iterable[VerifiedDecision] | None,
+    checks: CheckFeasibility | None,
+    accepted: int,
     image_size: str = "",
 ) -> FeatureHealth:
-    """`feature_health` of a replay and, when verification was on, its checked decisions."""
+    """`feature_health` of a replay and, when verification was on, of its checks."""
     segmentation = SegmentationFeatures.of(
         result.feature_detector, params.min_features, result.feature_counts, image_size
     )
-    checks, accepted = None, result.loop_closures
-    if verified is not None:
-        decisions = list(verified)
-        reasons = [check.verdict.reason for item in decisions for check in item.checks]
-        checks = CheckFeasibility.of(reasons, SKIPPED_REASONS)
-        accepted = sum(item.accepted_pairs for item in decisions)
     lengths = (decision.length for decision in result.decisions)
     return feature_health(segmentation, checks, lengths, params.max_sequence_length, accepted)
