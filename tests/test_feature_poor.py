@@ -39,7 +39,7 @@ def small_log(tmp_path: Path, width: int, height: int) -> Path:
     """drive_loops (240 frames, 256x192 JPEG) as width x height mono8 frames."""
     out = tmp_path / f"drive_loops_{width}x{height}.mcap"
     frames = shrink_log.log_frames(SAMPLES / "drive_loops.ros2.mcap")
-    assert shrink_log.write_small_log(frames, out, width, height) == 240
+    assert shrink_log.write_small_log(frames, out, (width, height)) == 240
     return out
 
 

@@ -8,7 +8,8 @@ SeqSLAM's classic 64x32 benchmarks record them:
         --size 128x64 -o /tmp/rtab128.mcap
 
 A log keeps its frames' header stamps; a folder's frame i is stamped START + i / fps. Frame
-indices are kept, so the source's ground-truth matrix scores the small log. `--dark F`
+indices are kept, so the source's ground-truth matrix scores the small log; a log's CameraInfo
+is kept, scaled to the new size. `--dark F`
 multiplies the pixels by F (0 < F <= 1) after shrinking: a night or low-contrast version.
 """
 
@@ -21,9 +22,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import numpy.typing as npt
-from camera_log_writers import ImageFrame, open_writer
+from camera_log_writers import CameraIntrinsics, ImageFrame, open_writer
 
 from doseqslam_logs.sources import open_source, pick_image_topic
+from doseqslam_logs.sources.camera_info import read_camera_info
 from doseqslam_logs.sources.image_folder import list_images
 from doseqslam_logs.sources.images import decode_gray
 
@@ -57,16 +59,39 @@ def shrink_gray(gray: Gray, width: int, height: int, dark: float = 1.0) -> Gray:
 
 
 def write_small_log(
-    frames: Iterator[tuple[int, Gray]], out: Path, width: int, height: int, dark: float = 1.0
+    frames: Iterator[tuple[int, Gray]],
+    out: Path,
+    size: tuple[int, int] | None,
+    dark: float = 1.0,
+    camera: CameraIntrinsics | None = None,
 ) -> int:
-    """Writes the shrunk frames as mono8 images on /camera/image_raw; returns the count."""
+    """Writes the frames shrunk to `size` (None: their own) as mono8 images on
+    /camera/image_raw, with `camera` as a CameraInfo beside each; returns the count."""
     count = 0
     with open_writer("ros2mcap", out) as writer:
         for stamp, gray in frames:
-            small = shrink_gray(gray, width, height, dark)
+            small = gray if size is None else shrink_gray(gray, *size, dark)
+            height, width = small.shape
             writer.write_image(ImageFrame(stamp, small.tobytes(), "mono8", width, height))
+            if camera is not None:
+                writer.write_camera_info(camera, stamp)
             count += 1
     return count
+
+
+def scaled_camera(log: Path, size: tuple[int, int] | None) -> CameraIntrinsics | None:
+    """The log's CameraInfo scaled to `size` (None: as it is); None when it has none, so that
+    the small log is verified with the essential matrix exactly when the source is."""
+    with open_source(log) as source:
+        topic = pick_image_topic(source, None)
+    info = read_camera_info(log, topic)
+    if info is None:
+        return None
+    width, height = size or (info.width, info.height)
+    sx, sy = width / info.width, height / info.height
+    # Pixel centres scale about the corner: x' = (x + 0.5) * s - 0.5 (cv2.resize's convention).
+    cx, cy = (info.cx + 0.5) * sx - 0.5, (info.cy + 0.5) * sy - 0.5
+    return CameraIntrinsics(width, height, info.fx * sx, info.fy * sy, cx, cy)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -84,9 +109,13 @@ def main() -> None:
     args = parser.parse_args()
     width, height = args.size
     is_folder = args.source.is_dir() and not (args.source / "metadata.yaml").exists()
-    frames = folder_frames(args.source, args.fps) if is_folder else log_frames(args.source)
-    count = write_small_log(frames, args.output, width, height, args.dark)
-    print(f"{args.output}: {count} frames of {width}x{height} mono8")
+    if is_folder:
+        frames, camera = folder_frames(args.source, args.fps), None
+    else:
+        frames, camera = log_frames(args.source), scaled_camera(args.source, args.size)
+    count = write_small_log(frames, args.output, args.size, args.dark, camera)
+    with_info = ", with its CameraInfo scaled" if camera else ""
+    print(f"{args.output}: {count} frames of {width}x{height} mono8{with_info}")
 
 
 if __name__ == "__main__":
