@@ -7,10 +7,11 @@ few matches"). Such a run ends with 0 loop closures like a run on a route that n
 back. `FeatureHealth` measures it per run and words a warning for the summary line, `--json`,
 the metadata, `evaluate` and `batch`, so that "could not check" never reads as "found nothing".
 
-Thresholds (docs/results.md, "Feature-poor frames"): the committed sample logs and the
-RTAB-Map frames have 0 % of their frames under the segmentation's need and at most 13 % of
-their checked candidates impossible; their 64x32 and 128x64 grey versions have 100 % and
-100 %. A run is called feature-poor from half of its frames or half of its checks on.
+Thresholds (docs/results.md, "Feature-poor frames"): at full size the committed sample logs
+and the RTAB-Map frames have 1 to 6 % of their frames under the segmentation's need and 2 to
+18 % of their checks impossible ("too few features"); their 128x64 and 64x32 grey versions
+have 100 % of both (ORB finds 0 to 2 features a frame there). A run is called feature-poor
+from half of its frames or half of its checks on, far from both sides.
 """
 
 from __future__ import annotations
@@ -84,7 +85,7 @@ class CheckFeasibility:
 
     Only "too few features" (a frame of the pair has fewer than the fit needs) says the
     frames were too poor; "too few matches" is also what a wrong candidate gives on healthy
-    frames (17 to 45 % of the checks of the committed samples and RTAB-Map), so it is counted
+    frames (9 to 45 % of the checks of the committed samples and RTAB-Map), so it is counted
     and reported but does not make a run feature-poor.
     """
 
