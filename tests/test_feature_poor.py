@@ -35,6 +35,11 @@ def cli(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str
     return code, capsys.readouterr().out
 
 
+def cli_stderr(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str]:
+    code = main([str(arg) for arg in args])
+    return code, capsys.readouterr().err
+
+
 def small_log(tmp_path: Path, width: int, height: int) -> Path:
     """drive_loops (240 frames, 256x192 JPEG) as width x height mono8 frames."""
     out = tmp_path / f"drive_loops_{width}x{height}.mcap"
@@ -52,6 +57,8 @@ def test_64x32_frames_say_so_in_summary_json_and_metadata(tmp_path, capsys) -> N
     assert SEGMENTATION_WARNING in line  # ... is no longer silent
     assert "median 0 a frame at 64x32" in line and ADVICE in line
 
+    code, err = cli_stderr(capsys, "annotate", log, "-o", out, "--json")
+    assert f"doseqslam-logs: warning: {log}: feature-poor frames: 240 of 240" in err
     code, text = cli(capsys, "annotate", log, "-o", out, "--json")
     features = json.loads(text)["features"]
     assert features["feature_poor"] is True

@@ -191,9 +191,12 @@ def result_json(result: AnnotateResult) -> dict[str, object]:
 
 
 def warnings(result: AnnotateResult) -> list[str]:
-    """The first example of each kind of skipped frame, and of a clock jump (for stderr)."""
+    """The first example of each kind of skipped frame, of a clock jump, and the feature-poor
+    warnings (for stderr)."""
     counts = result.counts
     lines = [f"skipped ({why}), first: {detail}" for why, detail in counts.first_skip.items()]
+    if result.health is not None and result.health.poor:
+        lines.append(result.health.note())
     if counts.first_clock_jump:
         lines.append(
             f"camera clock jump bridged with the log time, first: {counts.first_clock_jump} "
