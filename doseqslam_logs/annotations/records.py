@@ -519,6 +519,9 @@ class RunMetadata:
     image_messages_promised: int | None = None
     image_messages_promised_by: str = ""
     unattributed_messages: int = 0
+    # pipeline.feature_health's measurements and warnings, only when the frames were too poor
+    # in features to segment or verify ("": a healthy run, or a version before it existed).
+    feature_poor_json: str = ""
     tool: str = "doseqslam-logs"
     recorded: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
 
@@ -561,6 +564,8 @@ class RunMetadata:
         ("verified_pairs", "verified_pairs"),
         ("accepted_pairs", "accepted_pairs"),
     )
+    # Written only when not empty, so that a healthy run's record keeps its bytes.
+    _WHEN_SET_KEYS: ClassVar[tuple[tuple[str, str], ...]] = (("feature_poor", "feature_poor_json"),)
     _OPTIONAL_INTS: ClassVar[frozenset[str]] = frozenset(
         {"start_ns", "end_ns", "image_messages_promised"}
     )
@@ -571,12 +576,18 @@ class RunMetadata:
         return dict(json.loads(self.parameters_json)) if self.parameters_json else {}
 
     @property
+    def feature_poor(self) -> dict[str, Any]:
+        """The feature-poor warning's figures ({} when the run was not feature-poor)."""
+        return dict(json.loads(self.feature_poor_json)) if self.feature_poor_json else {}
+
+    @property
     def intrinsics(self) -> tuple[float, ...] | None:
         return _floats(json.loads(self.intrinsics_json)) if self.intrinsics_json else None
 
     def to_entries(self) -> dict[str, str]:
         """The record as written: strings, in a fixed order."""
         keys = self._KEYS + (self._VERIFICATION_KEYS if self.verification == "on" else ())
+        keys += tuple((key, name) for key, name in self._WHEN_SET_KEYS if getattr(self, name))
         return {key: self._text(name) for key, name in keys}
 
     def _text(self, name: str) -> str:
@@ -588,7 +599,7 @@ class RunMetadata:
         """A record as read; entries that a version did not write take their defaults
         ("", 0, None; verification "off"). Raises ValueError for a count that is not a number."""
         values: dict[str, Any] = {}
-        for key, name in cls._KEYS + cls._VERIFICATION_KEYS:
+        for key, name in cls._KEYS + cls._VERIFICATION_KEYS + cls._WHEN_SET_KEYS:
             text = entries.get(key, "")
             kind = cls.__dataclass_fields__[name].type
             if name in cls._OPTIONAL_INTS:

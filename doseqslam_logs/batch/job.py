@@ -72,6 +72,8 @@ class Outcome:
     error: str = ""
     exit_code: int = 0
     error_kind: str = ""  # "3 unreadable input", "worker crashed", ...
+    # The run's feature-poor warning and advice (pipeline.feature_health), "" when healthy.
+    warning: str = ""
 
     @property
     def ok(self) -> bool:
@@ -114,7 +116,8 @@ def _ok_outcome(job: Job, result: AnnotateResult, stamp: FileStamp | None, wall:
         skipped=result.counts.skipped_total,
     )
     timings = {"total_s": round(wall, 3), "replay_s": round(replay.wall_time_s, 3)}
-    return Outcome(job.key, "ok", result.source_sha256, stamp, counts, timings)
+    warning = "" if result.health is None else result.health.note()
+    return Outcome(job.key, "ok", result.source_sha256, stamp, counts, timings, warning=warning)
 
 
 def run_job(job: Job, notify: Notify | None = None) -> Outcome:

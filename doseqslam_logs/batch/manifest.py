@@ -61,6 +61,7 @@ class Entry:
     error: str = ""
     exit_code: int = 0
     finished_at: str = ""  # UTC, ISO 8601
+    warning: str = ""  # frames too poor in features to segment or verify: what and what to do
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True, separators=(",", ":"))

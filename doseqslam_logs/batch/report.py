@@ -38,6 +38,7 @@ def outcome_text(outcome: Outcome) -> str:
     return (
         f"ok: {c.frames} frames, {c.sequences} sequences, {c.loop_closures} loop closures, "
         f"{c.skipped} skipped frames, {outcome.timings.get('total_s', 0.0):.1f} s"
+        + (f"; WARNING: {outcome.warning}" if outcome.warning else "")
     )
 
 
@@ -153,6 +154,7 @@ def summary_table(result: BatchResult) -> str:
         c = o.counts
         numbers = [c.frames, c.sequences, c.loop_closures, c.skipped] if o.ok else ["-"] * 4
         name = jobs[o.key].name + ("" if o.ok else f"  ({o.error_kind})")
+        name += "  (feature-poor: see its line or the manifest)" if o.warning else ""
         seconds = f"{o.timings.get('total_s', 0.0):.1f}" if o.timings else "-"
         rows.append(["ok" if o.ok else "FAILED", *map(str, numbers), seconds, name])
     widths = [max(len(row[i]) for row in rows) for i in range(6)]
@@ -180,4 +182,7 @@ def totals_line(result: BatchResult) -> str:
     ]
     if not_run:
         parts.append(f"{not_run} not run")
+    poor = sum(bool(o.warning) for o in ok)
+    if poor:
+        parts.append(f"{poor} too poor in features to trust a count of 0 (see their lines)")
     return f"{', '.join(parts)}; {frames} frames, {loops} loop closures in {result.wall_s:.1f} s"

@@ -134,6 +134,7 @@ class _Recorder:
             error=outcome.error,
             exit_code=outcome.exit_code,
             finished_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            warning=outcome.warning,
         )
 
 

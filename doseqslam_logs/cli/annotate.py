@@ -178,6 +178,8 @@ def summary_line(result: AnnotateResult) -> str:
         model = pose if verification.intrinsics else "fundamental matrix, no intrinsics"
         checked = verification_summary(stats, verification.wall_s, model)
         notes.insert(0, f"verified {stats.candidates} candidate pairs: {checked}")
+    if result.health is not None and result.health.poor:
+        notes.append(f"WARNING: {result.health.note()}")
     return (
         f"{result.output_path}: {replay.frames} frames of {result.topic}, "
         f"{len(replay.decisions)} sequences, {result.loop_closures} loop closures, "
@@ -206,13 +208,17 @@ def result_json(result: AnnotateResult) -> dict[str, object]:
         "frames_skipped_by_reason": counts.skipped_by_reason(),
         "unattributed_messages": result.unattributed,
         "recovered": None if result.recovery is None else result.recovery.as_metadata(),
+        "features": None if result.health is None else result.health.to_json(),
     }
 
 
 def warnings(result: AnnotateResult) -> list[str]:
-    """The first example of each kind of skipped frame, and of a clock jump (for stderr)."""
+    """The first example of each kind of skipped frame, of a clock jump, and the feature-poor
+    warnings (for stderr)."""
     counts = result.counts
     lines = [f"skipped ({why}), first: {detail}" for why, detail in counts.first_skip.items()]
+    if result.health is not None and result.health.poor:
+        lines.append(result.health.note())
     if counts.first_clock_jump:
         lines.append(
             f"camera clock jump bridged with the log time, first: {counts.first_clock_jump} "

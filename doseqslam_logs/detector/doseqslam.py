@@ -32,7 +32,7 @@ from .place_search import (
     reference_score,
 )
 from .preprocess import frame_vector
-from .segmentation import Segmenter, make_segmenter
+from .segmentation import Segmenter, feature_count, make_segmenter
 from .timing import StageTimes
 from .trajectory import TrajectoryScores, next_best_starts, normalize, trajectory_scores
 
@@ -54,6 +54,9 @@ class PreparedFrame:
     segmentation: Any
     # ORB descriptors for the place index (place_search = "index" only).
     place_descriptors: npt.NDArray[np.uint8] | None = None
+    # Segmentation features found in the frame (-1: not counted, as for KLT and SeqSLAM), so
+    # that a run can tell when its frames were too poor to segment (pipeline.feature_health).
+    feature_count: int = -1
 
 
 @dataclass(frozen=True)
@@ -154,7 +157,7 @@ class DOSeqSLAM:
                 places = binary_descriptors(features)
             elif self._places is not None:
                 places = orb_descriptors(gray, p.max_features, p.feature_image_max_side)
-        return PreparedFrame(vector, features, places)
+        return PreparedFrame(vector, features, places, feature_count(features))
 
     def push(self, timestamp_ns: int, gray: GrayImage) -> list[SequenceDecision]:
         """Add the next frame; returns the decisions this frame made possible.

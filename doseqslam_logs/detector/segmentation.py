@@ -112,6 +112,12 @@ class _Features:
         return 0 if self.descriptors is None else len(self.descriptors)
 
 
+def feature_count(prepared: Any) -> int:
+    """The descriptors a `DescriptorSegmenter.prepare` found; -1 for anything else (KLT's
+    prepared frame is an image: its corners are found only when it seeds)."""
+    return prepared.count if isinstance(prepared, _Features) else -1
+
+
 class DescriptorSegmenter:
     """Running common set of descriptors, matched with a ratio test (paper eq. 5)."""
 

@@ -17,6 +17,13 @@ from .. import __version__
 from ..detector import Parameters, make_detector
 from ..detector.events import SequenceDecision
 from ..errors import GroundTruthError
+from ..pipeline.feature_health import (
+    ADVICE,
+    CheckFeasibility,
+    FeatureHealth,
+    check_feasibility,
+    run_feature_health,
+)
 from ..pipeline.replay import ReplayResult, replay
 from ..pipeline.reread import FolderFrameReader
 from ..sources.image_folder import folder_frames, folder_time_ns, list_images
@@ -48,6 +55,7 @@ class FolderVerification:
     decisions: list[SequenceDecision]  # reduced to their accepted pairs (verified_decisions)
     stats: VerificationStats  # seconds summed over the threads
     wall_s: float  # of the whole stage
+    checks: CheckFeasibility | None = None  # the checks the frames' features made impossible
 
     def describe(self) -> str:
         """The report's account: hash, pairs verified and accepted, and the cost."""
@@ -98,6 +106,7 @@ class FolderEvaluation:
     evaluation: Evaluation  # every candidate (the paper's figures)
     verification: FolderVerification | None  # None when verification was off
     verified: Evaluation | None  # the accepted pairs only, at the same th
+    health: FeatureHealth | None = None  # too few features to segment or verify?
 
     def format_report(self, threshold_note: str = "default with verification") -> str:
         """The `evaluate --images` report: the paper's without verification, else raw and
@@ -107,10 +116,12 @@ class FolderEvaluation:
             f"(features: {self.result.feature_detector}, parameters {self.params.hash}, "
             f"{self.result.frames_per_second:.0f} frames/s)"
         )
+        warnings = _warning_lines(self.health)
         if self.verification is None:
-            return f"{headline}\n{format_report(self.evaluation)}"
+            return "\n".join([headline, *warnings, format_report(self.evaluation)])
         side_by_side = format_side_by_side(self.evaluation, self.verified, threshold_note)
-        return f"{headline}; {self.verification.describe()}\n{side_by_side}"
+        headline += f"; {self.verification.describe()}"
+        return "\n".join([headline, *warnings, side_by_side])
 
     def scored_against(self, gt: GroundTruth, tolerance: int = 0) -> FolderEvaluation:
         """The same run's decisions scored against another ground truth (no new run).
@@ -135,6 +146,7 @@ class FolderEvaluation:
             **(_VERIFICATION_OFF if verification is None else verification.to_json_dict()),
             **self.evaluation.to_json_dict(),
             "verified": None if self.verified is None else self.verified.to_json_dict(),
+            "features": None if self.health is None else self.health.to_json(),
         }
 
 
@@ -185,7 +197,12 @@ def evaluate_folder(
         else _verify(files, result, verification, intrinsics, max_pixels)
     )
     scores = _scores(result, checked, truth, params, fps, tolerance)
-    return FolderEvaluation(images, fps, params, result, verification=checked, **scores)
+    checks = None if checked is None else checked.checks
+    accepted = result.loop_closures if checked is None else checked.stats.accepted
+    health = run_feature_health(params, result, checks, accepted)
+    return FolderEvaluation(
+        images, fps, params, result, verification=checked, health=health, **scores
+    )
 
 
 def _scores(
@@ -208,6 +225,13 @@ def _scores(
     }
 
 
+def _warning_lines(health: FeatureHealth | None) -> list[str]:
+    """The feature-poor warnings and the advice, one a line (none for a healthy run)."""
+    if health is None or not health.poor:
+        return []
+    return [f"WARNING: {text}" for text in health.warnings] + [f"         {ADVICE}"]
+
+
 def _verify(
     files: list[Path],
     result: ReplayResult,
@@ -221,4 +245,7 @@ def _verify(
         result.decisions, lambda: nullcontext(reader), params, intrinsics, VERIFY_THREADS
     )
     wall_s = time.perf_counter() - start
-    return FolderVerification(params, intrinsics, verified_decisions(checked), stats, wall_s)
+    feasible = check_feasibility(checked)
+    return FolderVerification(
+        params, intrinsics, verified_decisions(checked), stats, wall_s, feasible
+    )

@@ -61,7 +61,7 @@ class LogReport:
 
     def format_report(self) -> str:
         """The `evaluate OUT.mcap` report: headline, figures, pictures written."""
-        lines = [_headline(self.log), format_log_report(self.result)]
+        lines = [_headline(self.log), *_feature_warnings(self.log), format_log_report(self.result)]
         return "\n".join(lines + [f"wrote {path}" for path in self.plots])
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -219,6 +219,14 @@ def _headline(log: AnnotatedLog) -> str:
     )
 
 
+def _feature_warnings(log: AnnotatedLog) -> list[str]:
+    """The run's feature-poor warnings, as annotate recorded them (none for a healthy run)."""
+    poor = log.metadata.feature_poor
+    return [f"WARNING: {text}" for text in poor.get("warnings", [])] + (
+        [f"         {poor['advice']}"] if poor.get("advice") else []
+    )
+
+
 def _json_document(
     log: AnnotatedLog, gt_info: dict[str, Any], result: LogEvaluation, plots: list[str]
 ) -> dict[str, Any]:
@@ -234,6 +242,7 @@ def _json_document(
         "parameters_hash": meta.parameters_hash,
         "parameters": log.parameters,
         "verification": meta.verification,
+        "feature_poor": meta.feature_poor or None,
         "ground_truth": gt_info,
         **result.raw.to_json_dict(),
         "verified": None if result.verified is None else result.verified.to_json_dict(),

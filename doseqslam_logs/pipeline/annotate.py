@@ -60,6 +60,7 @@ from .decode import (
     TimeSource,
     decoded_frames,
 )
+from .feature_health import FeatureHealth, check_feasibility, run_feature_health
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
@@ -124,6 +125,8 @@ class AnnotateResult:
     promise: Promise | None = None
     unattributed: int = 0  # messages of undeclared topics (a .db3's rows of unknown topic ids)
     verification: Verification | None = None  # None when it was off
+    # Whether the frames held enough features to segment and verify (None: not measured).
+    health: FeatureHealth | None = None
 
     @property
     def loop_closures(self) -> int:
@@ -231,9 +234,12 @@ class _TimesRecorder:
 
     def __init__(self) -> None:
         self.pairs: list[tuple[int, int | None]] = []
+        self.first_size = ""  # "WxH" of the first frame, for the feature-poor warning
 
     def __call__(self, frames: Iterable[Frame]) -> Iterator[Frame]:
         for frame in frames:
+            if not self.pairs:
+                self.first_size = f"{frame.image.shape[1]}x{frame.image.shape[0]}"
             self.pairs.append((frame.log_time_ns, frame.header_stamp_ns))
             yield frame
 
@@ -462,6 +468,10 @@ def _annotate(
     )
     if verification is not None:
         metadata = verification.recorded_in(metadata)
+    checks = None if verification is None else check_feasibility(verification.decisions.values())
+    accepted = result.loop_closures if verification is None else verification.stats.accepted
+    health = run_feature_health(params, result, checks, accepted, recorder.first_size)
+    metadata = replace(metadata, feature_poor_json=health.metadata_json())
     annotations = Annotations.from_decisions(
         result.decisions,
         frame_times,
@@ -490,4 +500,5 @@ def _annotate(
         promise,
         unattributed,
         verification,
+        health,
     )

@@ -12,6 +12,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from array import array
 from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -43,6 +44,8 @@ class ReplayResult:
     # prepare threads, the rest on the detector's thread), plus "wait": the detector's thread
     # waiting for the next prepared frame (reading, decoding and preparing lag behind).
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    # Segmentation features of each frame, in order (-1: not counted; pipeline.feature_health).
+    feature_counts: array[int] = field(default_factory=lambda: array("i"))
 
     @property
     def loop_closures(self) -> int:
@@ -190,6 +193,7 @@ def replay(
                 break
             timestamp_ns, prepared = item
             result.decisions += detector.push_prepared(timestamp_ns, prepared)
+            result.feature_counts.append(prepared.feature_count)
             result.frames += 1
             if progress is not None:
                 progress(result.frames)

@@ -1,0 +1,155 @@
+#!/usr/bin/env python3
+"""The feature-poor table of docs/results.md (issue #22): small grey versions of the RTAB-Map
+samples, our sample logs and Lip6 Outdoor, annotated with the defaults and with
+`--no-verify --method seqslam`, scored against each one's ground-truth matrix.
+
+Each source is shrunk to each size (tools/shrink_log.py, area-averaged grey, a ROS 2 MCAP of
+mono8 images in a temporary folder), then annotated (`annotate_log`, what `annotate` runs) and
+scored (`evaluate_log`, what `evaluate OUT.mcap --gt GT` runs): the defaults by their verified
+pairs, the unverified SeqSLAM by every pair at its th. Lip6 Outdoor is held out: it is
+reported, never tuned on (`--datasets` leaves it out by default).
+
+    python tools/feature_poor_table.py                            # RTAB-Map and samples, ~2 min
+    python tools/feature_poor_table.py --datasets lip6 --sizes 64x32,128x64
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from statistics import median
+
+import shrink_log
+
+from doseqslam_logs.detector import Parameters
+from doseqslam_logs.evaluation.log_run import LogEvaluationOptions, evaluate_log
+from doseqslam_logs.evaluation.metrics import Evaluation
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
+from doseqslam_logs.pipeline.feature_health import FeatureHealth
+from doseqslam_logs.verification import DEFAULT_VERIFICATION, verified_detector_parameters
+
+DATA = Path("../shared/data")
+SAMPLES = Path("sample_logs")
+
+
+@dataclass(frozen=True)
+class Source:
+    name: str
+    path: Path  # a log, or a folder of images at 1 fps
+    gt: Path
+    kappa_s: float | None = None  # None: the default
+
+    def frames(self) -> Iterator[tuple[int, shrink_log.Gray]]:
+        if self.path.is_dir():
+            return shrink_log.folder_frames(self.path, 1.0)
+        return shrink_log.log_frames(self.path)
+
+
+def sources(data: Path) -> dict[str, list[Source]]:
+    samples = [
+        Source(name, SAMPLES / f"{name}.{ext}", SAMPLES / f"{name}.gt.npz")
+        for name, ext in (
+            ("drive_loops", "ros2.mcap"),
+            ("drive_parked", "ros2.mcap"),
+            ("drive_varrate", "bag"),
+        )
+    ]
+    rtabmap = data / "rtabmap_samples_loop"
+    lip6 = data / "lip6_outdoor"
+    return {
+        "rtabmap": [Source("RTAB-Map", rtabmap / "images", rtabmap / "samples_GT.bmp", 10.0)],
+        "samples": samples,
+        "lip6": [
+            Source(
+                "Lip6 Outdoor (held out)",
+                lip6 / "images",
+                lip6 / "ground_truth" / "groundTruthLip6O.mat",
+            )
+        ],
+    }
+
+
+RUNS = ("defaults", "--no-verify --method seqslam")
+
+
+def run(log: Path, out: Path, source: Source, kind: str) -> tuple[AnnotateResult, Evaluation]:
+    kappa = {} if source.kappa_s is None else {"kappa_s": source.kappa_s}
+    if kind == "defaults":
+        params = verified_detector_parameters(**kappa)
+        options = AnnotateOptions(verification=DEFAULT_VERIFICATION, sidecar=True)
+    else:
+        params = Parameters(method="seqslam", **kappa)
+        options = AnnotateOptions(verification=None, sidecar=True)
+    result = annotate_log(log, out, params, options)
+    scored = evaluate_log(out, LogEvaluationOptions(gt=source.gt, source=log)).result
+    figures = scored.verified if scored.verified is not None else scored.raw
+    return result, figures
+
+
+def warning_cell(health: FeatureHealth | None) -> str:
+    """Which warning the run gave, with its share."""
+    if health is None or not health.poor:
+        return "no"
+    seg, checks = health.segmentation, health.checks
+    parts = [f"frames {100 * seg.share_below:.0f} %"] if seg.poor else []
+    if checks is not None and checks.poor:
+        parts.append(f"checks {100 * checks.share:.0f} %")
+    return "**yes**: " + ", ".join(parts)
+
+
+def row(source: Source, size: str, kind: str, result: AnnotateResult, e: Evaluation) -> str:
+    lengths = [d.length for d in result.replay.decisions]
+    cells = [
+        source.name,
+        size,
+        f"`{kind}`" if kind.startswith("-") else kind,
+        f"{len(lengths)} ({median(lengths):g})",
+        str(result.loop_closures),
+        str(e.tp),
+        str(e.fp),
+        f"{100 * e.r_p100:.1f}",
+        warning_cell(result.health),
+    ]
+    return "| " + " | ".join(cells) + " |"
+
+
+def measure(source: Source, size: str, folder: Path) -> None:
+    """Packs the source at `size` and prints a row per run."""
+    start = time.perf_counter()
+    log = folder / "log.mcap"
+    shape = None if size == "full" else shrink_log.parse_size(size)
+    camera = None if source.path.is_dir() else shrink_log.scaled_camera(source.path, shape)
+    shrink_log.write_small_log(source.frames(), log, shape, camera=camera)
+    for kind in RUNS:
+        result, figures = run(log, folder / "out.mcap", source, kind)
+        print(row(source, size, kind, result, figures), flush=True)
+    print(f"{source.name} {size}: {time.perf_counter() - start:.0f} s", file=sys.stderr)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--datasets", default="rtabmap,samples")
+    parser.add_argument("--sizes", default="full,128x64,64x32", help="full keeps the size")
+    args = parser.parse_args()
+    print(
+        "| data | frames | run | sequences (median length) | reported | true | false "
+        "| R@P100 % | feature-poor warning |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    every = sources(args.data)
+    with tempfile.TemporaryDirectory() as scratch:
+        for key in args.datasets.split(","):
+            for source in every[key]:
+                for size in args.sizes.split(","):
+                    measure(source, size, Path(scratch))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
