@@ -19,6 +19,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -60,17 +61,40 @@ def annotate(python_path: Path | None, log: Path, output: Path, extra: list[str]
     )
 
 
+def same_bytes(old: Path, new: Path) -> bool:
+    return old.read_bytes() == new.read_bytes()
+
+
+def same_decisions(old: Path, new: Path) -> bool:
+    """The same loop-closure and sequence records, read back by this version's reader (which
+    reads every older output): the detector's and verification's decisions, whatever else the
+    files hold (metadata entries, visualization channels, schema text). Compared by repr, so
+    that NaN fields compare equal."""
+    from doseqslam_logs.annotations.reader import read_annotations
+
+    before, after = read_annotations(old), read_annotations(new)
+    return (repr(before.loop_closures), repr(before.sequences)) == (
+        repr(after.loop_closures),
+        repr(after.sequences),
+    )
+
+
 def compare(
-    revision: str, logs: list[Path], extra: list[str], work: Path
+    revision: str,
+    logs: list[Path],
+    extra: list[str],
+    work: Path,
+    same: Callable[[Path, Path], bool] = same_bytes,
 ) -> list[tuple[str, bool]]:
-    """(log name, same bytes) for each log."""
-    before = extract(revision, work / "before")
+    """(log name, `same(output of revision, output of this version)`) for each log."""
+    before = extract(revision, work / revision)
     results = []
     for log in logs:
-        old, new = work / f"{log.name}.before.mcap", work / f"{log.name}.after.mcap"
+        old, new = work / f"{log.name}.{revision}.mcap", work / f"{log.name}.after.mcap"
         annotate(before, log, old, extra)
-        annotate(None, log, new, extra)
-        results.append((log.name, old.read_bytes() == new.read_bytes()))
+        if not new.exists():  # this version's output, shared by comparisons in one `work`
+            annotate(None, log, new, extra)
+        results.append((log.name, same(old, new)))
     return results
 
 
