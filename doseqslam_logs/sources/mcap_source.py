@@ -538,16 +538,9 @@ class McapSource:
 
         Raises SourceError (while iterating) for a damaged file.
         """
-        try:
-            with open(self.path, "rb") as file:
-                for _, _, message in self._records(file, topic, start_ns, end_ns):
-                    yield message.log_time, bytes(message.data)
-        except DoseqslamError:
-            raise
-        except Exception as exc:
-            raise SourceError(
-                f"{self.path}: cannot read the messages of {topic} ({describe_read_error(exc)})"
-            ) from exc
+        with self._reading(topic), open(self.path, "rb") as file:
+            for _, _, message in self._records(file, topic, start_ns, end_ns):
+                yield message.log_time, bytes(message.data)
 
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
         """Every message of `topic` in log-time order, decoded with the file's schema.
@@ -555,13 +548,18 @@ class McapSource:
         Raises SourceError (while iterating) for a damaged file or an unsupported encoding.
         """
         self._check_complete()
+        with self._reading(topic), open(self.path, "rb") as file:
+            for schema, channel, message in self._records(file, topic, None, None):
+                if schema is None:
+                    raise SourceError(f"{self.path}: topic {topic!r} has no schema")
+                decoded = self._deserializer(schema, channel)(message.data)
+                yield DecodedMessage(message.log_time, schema.name, decoded)
+
+    @contextlib.contextmanager
+    def _reading(self, topic: str) -> Iterator[None]:
+        """Damage found while reading `topic`'s messages, as one SourceError in our words."""
         try:
-            with open(self.path, "rb") as file:
-                for schema, channel, message in self._records(file, topic, None, None):
-                    if schema is None:
-                        raise SourceError(f"{self.path}: topic {topic!r} has no schema")
-                    decoded = self._deserializer(schema, channel)(message.data)
-                    yield DecodedMessage(message.log_time, schema.name, decoded)
+            yield
         except DoseqslamError:
             raise
         except Exception as exc:

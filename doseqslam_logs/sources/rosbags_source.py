@@ -8,6 +8,7 @@ to the standard ROS 2 Humble types.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -212,16 +213,10 @@ class RosbagsSource:
         connections = [c for c in self._reader.connections if c.topic == topic]
         if not connections:  # rosbags would yield every message of the bag
             return
-        try:
+        with self._reading(topic):
             messages = self._reader.messages(connections=connections, start=start_ns, stop=end_ns)
             for _, log_time, payload in messages:
                 yield log_time, bytes(payload)
-        except DoseqslamError:
-            raise
-        except Exception as exc:
-            raise SourceError(
-                f"{self.path}: cannot read the messages of {topic} ({_one_line(exc)})"
-            ) from exc
 
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
         """Every message of `topic` in log-time order, decoded (none for a missing topic).
@@ -231,10 +226,16 @@ class RosbagsSource:
         connections = [c for c in self._reader.connections if c.topic == topic]
         if not connections:  # rosbags would yield every message of the bag
             return
-        try:
+        with self._reading(topic):
             for connection, log_time, payload in self._reader.messages(connections=connections):
                 decoded = self._reader.deserialize(payload, connection.msgtype)
                 yield DecodedMessage(log_time, connection.msgtype, decoded)
+
+    @contextlib.contextmanager
+    def _reading(self, topic: str) -> Iterator[None]:
+        """A bag found corrupt while reading `topic`'s messages, as one SourceError."""
+        try:
+            yield
         except DoseqslamError:
             raise
         except Exception as exc:
