@@ -389,6 +389,9 @@ def test_the_unmutated_seeds_annotate(
             log = folder / f"log{seed.suffix}"
             log.write_bytes(seed.data)
             assert main(["annotate", str(log), "-o", str(folder / "out.mcap"), *seed.topic]) == 0
-            assert capfd.readouterr().err == ""
+            # The seeds are a few tiny frames: the one thing to say is that they are too poor
+            # in features for the segmentation (issue #22), nothing else.
+            said = capfd.readouterr().err.splitlines()
+            assert all("warning:" in line and "feature-poor frames" in line for line in said)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
