@@ -1,4 +1,5 @@
-"""Helpers shared by the detector tests: scripted segmentation and real frames."""
+"""Helpers shared by the detector and verification tests: scripted segmentation, real frames,
+and a detector decision built by hand."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import numpy.typing as npt
+
+from doseqslam_logs.detector.events import Candidate, SequenceDecision
 
 
 class ScriptedSegmenter:
@@ -47,3 +50,41 @@ def rtabmap_frames(shared_data: Path) -> list[npt.NDArray[np.uint8]]:
 def rtabmap_gt(shared_data: Path) -> npt.NDArray[np.bool_]:
     path = shared_data / "rtabmap_samples_loop" / "samples_GT.bmp"
     return np.asarray(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0)
+
+
+def sequence_decision(
+    length: int,
+    frame_ns: int,
+    candidates: int = 0,
+    first: int = 100,
+    sequence_id: int = 0,
+    match: int = 10,
+    database_size: int | None = None,
+) -> SequenceDecision:
+    """A sequence of `length` frames from `first`, its first `candidates` frames matched to
+    frames `match`, `match` + 1, ...; accepted when it has candidates. The database ends 10
+    frames before the sequence unless `database_size` says otherwise."""
+    pairs = tuple(
+        Candidate(first + z, match + z, (first + z) * frame_ns, (match + z) * frame_ns, 1.0)
+        for z in range(candidates)
+    )
+    return SequenceDecision(
+        sequence_id=sequence_id,
+        first_index=first,
+        last_index=first + length - 1,
+        first_timestamp_ns=first * frame_ns,
+        last_timestamp_ns=(first + length - 1) * frame_ns,
+        database_size=first - 10 if database_size is None else database_size,
+        best_start=match,
+        best_velocity=1.0,
+        best_score=1.0,
+        second_score=2.0,
+        gamma=0.5,
+        gamma_previous=None,
+        gamma_next=None,
+        f=0.5,
+        threshold=0.99,
+        accepted=bool(pairs),
+        candidates=pairs,
+        method="doseqslam",
+    )

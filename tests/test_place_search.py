@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 from contextlib import nullcontext
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
+from detector_helpers import sequence_decision
 
 from doseqslam_logs.detector import DOSeqSLAM, Parameters, PreparedFrame
 from doseqslam_logs.detector import place_search as place_search_module
 from doseqslam_logs.detector.difference import FrameStore, sad_columns, sad_rows
 from doseqslam_logs.detector.enhance import enhance
-from doseqslam_logs.detector.events import Alternative, Candidate, SequenceDecision
+from doseqslam_logs.detector.events import Alternative, SequenceDecision
 from doseqslam_logs.detector.params import LATER_FIELDS
 from doseqslam_logs.detector.place_search import Exclusion, PlaceSearch, Window
 from doseqslam_logs.errors import ParameterError
@@ -221,32 +223,7 @@ def test_windows_of_an_empty_index_propose_nothing() -> None:
 
 def strided_decision(alternatives: tuple[Alternative, ...]) -> SequenceDecision:
     """30 frames at 10 Hz (stride 5), matched to frames 10, 11, ..."""
-    frame_ns = 100_000_000
-    pairs = tuple(
-        Candidate(100 + z, 10 + z, (100 + z) * frame_ns, (10 + z) * frame_ns, 1.0)
-        for z in range(30)
-    )
-    return SequenceDecision(
-        sequence_id=0,
-        first_index=100,
-        last_index=129,
-        first_timestamp_ns=100 * frame_ns,
-        last_timestamp_ns=129 * frame_ns,
-        database_size=90,
-        best_start=10,
-        best_velocity=1.0,
-        best_score=1.0,
-        second_score=2.0,
-        gamma=0.5,
-        gamma_previous=None,
-        gamma_next=None,
-        f=0.5,
-        threshold=0.99,
-        accepted=True,
-        candidates=pairs,
-        method="doseqslam",
-        alternatives=alternatives,
-    )
+    return replace(sequence_decision(30, 100_000_000, 30), alternatives=alternatives)
 
 
 def test_alternatives_are_tried_at_high_frame_rates_and_given_up_after_two_hopeless_checks() -> (

@@ -14,12 +14,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from detector_helpers import sequence_decision
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.annotations.records import FrameTimes
-from doseqslam_logs.detector.events import Alternative, Candidate, SequenceDecision
+from doseqslam_logs.detector.events import Alternative
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.export.loops import loops_summary
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
@@ -41,43 +42,13 @@ TOPIC = "/camera/image/compressed"
 STRIDED = DEFAULT_VERIFICATION.replace(query_interval_s=2.0)  # 2 Hz sample: s = 4
 
 
-def decision(
-    length: int, frame_ns: int, candidates: int = 0, first: int = 100, sequence_id: int = 0
-) -> SequenceDecision:
-    """A sequence of `length` frames from `first`, its candidates matched to frames 10, 11..."""
-    pairs = tuple(
-        Candidate(first + z, 10 + z, (first + z) * frame_ns, (10 + z) * frame_ns, 1.0)
-        for z in range(candidates)
-    )
-    return SequenceDecision(
-        sequence_id=sequence_id,
-        first_index=first,
-        last_index=first + length - 1,
-        first_timestamp_ns=first * frame_ns,
-        last_timestamp_ns=(first + length - 1) * frame_ns,
-        database_size=first - 10,
-        best_start=10,
-        best_velocity=1.0,
-        best_score=1.0,
-        second_score=2.0,
-        gamma=0.5,
-        gamma_previous=None,
-        gamma_next=None,
-        f=0.5,
-        threshold=0.99,
-        accepted=bool(pairs),
-        candidates=pairs,
-        method="doseqslam",
-    )
-
-
 def test_query_stride_follows_the_frame_rate() -> None:
-    assert query_stride(decision(30, 100_000_000), 0.5) == 5  # 10 Hz
-    assert query_stride(decision(30, 500_000_000), 0.5) == 1  # 2 Hz: every candidate
-    assert query_stride(decision(30, 1_000_000_000), 0.5) == 1  # 1 Hz
-    assert query_stride(decision(30, 33_333_333), 0.5) == 15  # 30 Hz
-    assert query_stride(decision(30, 100_000_000), 0.0) == 1  # 0: always every candidate
-    assert query_stride(decision(1, 100_000_000), 0.5) == 1  # one frame: no rate
+    assert query_stride(sequence_decision(30, 100_000_000), 0.5) == 5  # 10 Hz
+    assert query_stride(sequence_decision(30, 500_000_000), 0.5) == 1  # 2 Hz: every candidate
+    assert query_stride(sequence_decision(30, 1_000_000_000), 0.5) == 1  # 1 Hz
+    assert query_stride(sequence_decision(30, 33_333_333), 0.5) == 15  # 30 Hz
+    assert query_stride(sequence_decision(30, 100_000_000), 0.0) == 1  # 0: always every candidate
+    assert query_stride(sequence_decision(1, 100_000_000), 0.5) == 1  # one frame: no rate
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +122,7 @@ def test_two_hopeless_checks_give_the_sequence_up() -> None:
         return ((i, np.zeros((48, 64), np.uint8)) for i in indices)
 
     [verified], stats = verify_in_threads(
-        [decision(30, 100_000_000, 30)], lambda: nullcontext(blank), DEFAULT_VERIFICATION
+        [sequence_decision(30, 100_000_000, 30)], lambda: nullcontext(blank), DEFAULT_VERIFICATION
     )
     reasons = [check.verdict.reason for check in verified.checks]
     assert reasons[0] == reasons[5] == "too few features"
@@ -163,7 +134,7 @@ def test_two_hopeless_checks_give_the_sequence_up() -> None:
     assert stats.pairs == 5
     assert {100, 105}.issubset(read) and not {110, 115, 120, 125} & set(read)
     at_2_hz, _ = verify_in_threads(  # stride 1: exhaustive, nothing is given up
-        [decision(6, 500_000_000, 6)], lambda: nullcontext(blank), DEFAULT_VERIFICATION
+        [sequence_decision(6, 500_000_000, 6)], lambda: nullcontext(blank), DEFAULT_VERIFICATION
     )
     assert all(check.verdict.reason == "too few features" for check in at_2_hz[0].checks)
 
@@ -178,7 +149,7 @@ def test_alternatives_are_tried_in_order_and_given_up_after_two_hopeless_checks(
         read.extend(indices)
         return ((i, np.zeros((48, 64), np.uint8)) for i in indices)
 
-    base = decision(4, 500_000_000, 4)  # matches 10..13, database 0..89
+    base = sequence_decision(4, 500_000_000, 4)  # matches 10..13, database 0..89
     alternatives = (
         Alternative(60, 1.0, 1.5, tuple(range(60, 64))),
         Alternative(0, 1.0, 1.6, tuple(range(0, 4))),
@@ -200,7 +171,9 @@ def test_alternatives_are_tried_in_order_and_given_up_after_two_hopeless_checks(
 def test_threads_give_the_same_checks(shared_data) -> None:
     """The decisions of RTAB-Map verified on 1 and 3 threads: the same checks, in order."""
     images = list_images(shared_data / "rtabmap_samples_loop" / "images")
-    sequences = [decision(3, 1_000_000_000, 3, first=60 + 5 * k, sequence_id=k) for k in range(4)]
+    sequences = [
+        sequence_decision(3, 1_000_000_000, 3, first=60 + 5 * k, sequence_id=k) for k in range(4)
+    ]
 
     reader = FolderFrameReader(images)
     params = DEFAULT_VERIFICATION.replace(refine_radius=3)
@@ -220,7 +193,7 @@ def test_a_failing_thread_stops_the_others() -> None:
 
     with pytest.raises(LookupError, match="frames gone"):
         verify_in_threads(
-            [decision(3, 10**9, 3)] * 6,
+            [sequence_decision(3, 10**9, 3)] * 6,
             lambda: nullcontext(broken),
             DEFAULT_VERIFICATION,
             workers=2,

@@ -11,8 +11,8 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 import pytest
+from detector_helpers import sequence_decision
 
-from doseqslam_logs.detector.events import Candidate, SequenceDecision
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
     NOT_BRACKETED,
@@ -61,27 +61,7 @@ def indexed_features(monkeypatch: pytest.MonkeyPatch) -> None:
 def check(monkeypatch: pytest.MonkeyPatch, place: int, passing: range) -> stage.PairCheck:
     monkeypatch.setattr(stage, "verify_pair", geometry(place, passing))
     verifier = Verifier(DEFAULT_VERIFICATION, frames)
-    candidate = Candidate(QUERY, MATCH, QUERY * 10**9, MATCH * 10**9, 1.0)
-    decision = SequenceDecision(
-        sequence_id=0,
-        first_index=QUERY,
-        last_index=QUERY,
-        first_timestamp_ns=QUERY * 10**9,
-        last_timestamp_ns=QUERY * 10**9,
-        database_size=DATABASE,
-        best_start=MATCH,
-        best_velocity=1.0,
-        best_score=1.0,
-        second_score=2.0,
-        gamma=0.5,
-        gamma_previous=None,
-        gamma_next=None,
-        f=0.5,
-        threshold=0.99,
-        accepted=True,
-        candidates=(candidate,),
-        method="doseqslam",
-    )
+    decision = sequence_decision(1, 10**9, 1, QUERY, match=MATCH, database_size=DATABASE)
     (result,) = verifier.verify(decision).checks
     return result
 
