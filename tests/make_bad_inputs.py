@@ -19,7 +19,7 @@ import os
 import shutil
 import struct
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -177,6 +177,25 @@ def good_items(jpegs: list[bytes]) -> list[Item]:
 
 
 # --- byte-level damage ------------------------------------------------------------------------
+
+
+def copied_messages(source: Path, writer: Any) -> Iterator[tuple[int, Any]]:
+    """Copy every message of the MCAP `source` into the started mcap `writer`, registering
+    its schemas and channels as they come; yields (number, message) after each copy, so that
+    a caller can add records of its own between them."""
+    channels: dict[int, int] = {}
+    with source.open("rb") as stream:
+        for number, (schema, channel, message) in enumerate(make_reader(stream).iter_messages()):
+            if channel.id not in channels:
+                assert schema is not None
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+            yield number, message
 
 
 def chunk_spans(path: Path) -> list[tuple[int, int]]:

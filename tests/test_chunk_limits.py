@@ -59,25 +59,14 @@ def rewrite(
     out = io.BytesIO()
     writer = Writer(out, chunk_size=chunk_size, compression=compression, index_types=index_types)
     writer.start("ros2", "test")
-    channels: dict[int, int] = {}
-    with good.open("rb") as stream:
-        for number, (schema, channel, message) in enumerate(make_reader(stream).iter_messages()):
-            if channel.id not in channels:
-                assert schema is not None
-                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schema_id
-                )
-            writer.add_message(
-                channels[channel.id], message.log_time, message.data, message.publish_time
-            )
-            if number == bomb_after:
-                if alone:
-                    writer.flush()
-                padding = writer.register_channel("/padding", "raw", 0)
-                writer.add_message(padding, message.log_time, bytes(BOMB_BYTES), message.log_time)
-                if alone:
-                    writer.flush()
+    for number, message in bad.copied_messages(good, writer):
+        if number == bomb_after:
+            if alone:
+                writer.flush()
+            padding = writer.register_channel("/padding", "raw", 0)
+            writer.add_message(padding, message.log_time, bytes(BOMB_BYTES), message.log_time)
+            if alone:
+                writer.flush()
     writer.finish()
     return out.getvalue()
 

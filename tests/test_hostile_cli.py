@@ -463,24 +463,13 @@ def chunk_index_cut_to_8_bytes(good: bytes) -> bytes:
 def unchunked_message_shorter_than_its_header(good: Path) -> bytes:
     """The log rewritten without chunks; its 6th message record says it is 10 bytes long,
     less than a message's own 22-byte header."""
-    from mcap.reader import make_reader
     from mcap.writer import Writer
 
     out = io.BytesIO()
     writer = Writer(out, use_chunking=False)
     writer.start("ros2", "test")
-    channels: dict[int, int] = {}
-    with good.open("rb") as stream:
-        for schema, channel, message in make_reader(stream).iter_messages():
-            if channel.id not in channels:
-                assert schema is not None
-                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schema_id
-                )
-            writer.add_message(
-                channels[channel.id], message.log_time, message.data, message.publish_time
-            )
+    for _ in make_bad_inputs.copied_messages(good, writer):
+        pass
     writer.finish()
     data = bytearray(out.getvalue())
     messages = [at for opcode, at, _ in _records(data, 8, len(data) + FOOTER_AT) if opcode == 5]
