@@ -406,7 +406,6 @@ class Verifier:
         while the frames pass with a relative pose, until one lies on the other side; the
         frames between the last two are then checked and the match bracketed among them. Stops,
         not bracketed, at a frame that fails or outside `bounds` (`_reach`)."""
-        rejected = (refined, seen[refined])
         direction = side_of_query(seen[refined])
         at = refined
         while direction and at + step * direction in bounds:
@@ -422,8 +421,7 @@ class Verifier:
                 nearest = best_verdict([(m, seen[m]) for m in between], at)
                 return self._bracketed(span, seen, *nearest)
             at = ahead
-        frame, verdict = rejected
-        return frame, dataclasses.replace(verdict, accepted=False, reason=NOT_BRACKETED)
+        return refined, dataclasses.replace(seen[refined], accepted=False, reason=NOT_BRACKETED)
 
     def _try_alternatives(
         self,
@@ -475,13 +473,11 @@ class Verifier:
         """The frames a candidate's refined match may be: its window widened by WALK_RADII *
         refine_radius on either side, for a walk (also over tracked checks, whose windows
         follow the previous offset), inside the sequence's database."""
-        r = (1 + WALK_RADII) * self.params.refine_radius
-        return range(max(0, match - r), min(max(database_size, match + 1), match + r + 1))
+        return _frames_around(match, (1 + WALK_RADII) * self.params.refine_radius, database_size)
 
     def _window(self, match: int, database_size: int) -> range:
         """Frames within +-refine_radius of `match` that belong to the sequence's database."""
-        r = self.params.refine_radius
-        return range(max(0, match - r), min(max(database_size, match + 1), match + r + 1))
+        return _frames_around(match, self.params.refine_radius, database_size)
 
     def _verdicts(
         self, query: FrameFeatures, frames: Sequence[int], features: dict[int, FrameFeatures]
@@ -530,6 +526,11 @@ class Verifier:
         if absent:
             raise LookupError(f"the frame loader did not return frames {absent[:5]}")
         return loaded
+
+
+def _frames_around(match: int, radius: int, database_size: int) -> range:
+    """Frames within +-radius of `match` inside the database (`match` itself at least)."""
+    return range(max(0, match - radius), min(max(database_size, match + 1), match + radius + 1))
 
 
 def verify_in_threads(
