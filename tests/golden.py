@@ -13,4 +13,4 @@ DRIVE_LOOPS_GT_LOOP_EVENTS = 123
 RTABMAP_FRAMES = 84
 RTABMAP_LOOP_EVENTS = 44
 RTABMAP_PAPER_TP = 9  # DOSeqSLAM, kappa 10 s, --no-verify: R@P100 9 / 44
-RTABMAP_VERIFIED_MIN_TP = 35  # the defaults with verification: 35 TP / 0 FP (79.5 %)
+RTABMAP_VERIFIED_MIN_TP = 38  # the defaults with verification: 38 TP / 0 FP (86.4 %)

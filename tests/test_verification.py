@@ -228,6 +228,39 @@ def test_shrunk_frames_report_original_coordinates(shared_data: Path) -> None:
     assert verify_pair(features, other, small_params).accepted
 
 
+def test_a_feature_poor_frame_is_looked_at_again_finer(shared_data: Path) -> None:
+    # RTAB-Map image 16 (512x384, dim and plain) has about 50 ORB features at 320 px, below
+    # detail_below: it is detected again at 640 px (its own size here) and keeps more.
+    gray = _gray(shared_data, RTABMAP, 16)
+    coarse = extract_features(gray, P.replace(detail_below=0))
+    finer = extract_features(gray, P)
+    assert coarse.count < P.detail_below
+    assert finer.count > coarse.count and finer.scale == 1.0 > coarse.scale
+    assert np.array_equal(
+        finer.descriptors, extract_features(gray, P.replace(image_max_side=640)).descriptors
+    )
+    # A rich frame (image 32, hundreds of features at 320 px) is not looked at again.
+    rich = _gray(shared_data, RTABMAP, 32)
+    assert extract_features(rich, P).count >= P.detail_below
+    assert np.array_equal(
+        extract_features(rich, P).keypoints,
+        extract_features(rich, P.replace(detail_below=0)).keypoints,
+    )
+
+
+def test_the_finer_look_finds_revisits_that_320_px_lost(shared_data: Path) -> None:
+    # RTAB-Map 57 revisits 17 (samples_GT.bmp); at 320 px both frames are too poor for the
+    # check (too few matches), the finer look accepts the pair.
+    assert _is_loop(shared_data, RTABMAP, 57, 17)
+    coarse = P.replace(detail_below=0)
+    assert not verify_pair(
+        _features(shared_data, RTABMAP, 57, coarse),
+        _features(shared_data, RTABMAP, 17, coarse),
+        coarse,
+    ).accepted
+    assert _verify(shared_data, RTABMAP, 57, 17).accepted
+
+
 @pytest.mark.parametrize(
     ("detector", "width"), [("orb", 32), ("sift", 128), ("akaze", 61), ("brisk", 64)]
 )
@@ -426,6 +459,7 @@ def test_parameters_hash_is_stable_and_sensitive() -> None:
         {"confidence": 1.0},
         {"min_inliers": 7},
         {"refine_radius": -1},
+        {"detail_below": -1},
         {"max_rotation_deg": 0.0},
         {"max_rotation_deg": 181.0},
     ],

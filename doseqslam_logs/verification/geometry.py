@@ -44,6 +44,8 @@ _FACTORIES = {
 }
 _FIT_SEED = 0
 _DESCRIPTOR_BYTES = {"sift": 128, "orb": 32, "akaze": 61, "brisk": 64}
+# How much finer a feature-poor frame is looked at again (`extract_features`).
+DETAIL_FACTOR = 2
 # The reason of a refined match rejected by `bracketed_match`.
 NOT_BRACKETED = "not bracketed"
 
@@ -122,7 +124,10 @@ class Verdict:
 
 
 def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFeatures:
-    """Detect and describe the strongest `params.max_features` features of a gray frame.
+    """Detect and describe the strongest `params.max_features` features of a gray frame,
+    shrunk to `params.image_max_side`; a frame with fewer than `params.detail_below` there is
+    detected again at DETAIL_FACTOR times that side (at most its own size), and the finer
+    look is kept when it finds more.
 
     A flat or empty frame gives zero features (not an error).
 
@@ -133,7 +138,17 @@ def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFe
         raise ValueError("extract_features needs a 2-D uint8 gray image")
     if gray.size == 0:
         return _empty_features(params, 1.0)
-    small = shrink(gray, params.image_max_side)
+    features = _detect(gray, params.image_max_side, params)
+    if features.count < params.detail_below and max(gray.shape) > params.image_max_side:
+        finer = _detect(gray, DETAIL_FACTOR * params.image_max_side, params)
+        if finer.count > features.count:
+            return finer
+    return features
+
+
+def _detect(gray: GrayImage, max_side: int, params: VerificationParameters) -> FrameFeatures:
+    """The strongest features of `gray` shrunk to `max_side`, in original pixels."""
+    small = shrink(gray, max_side)
     # Per axis: shrink rounds each side separately, so the two ratios differ by < 1 px.
     scale_xy = np.array([small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]])
     scale = float(scale_xy.min())

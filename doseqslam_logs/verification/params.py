@@ -45,6 +45,11 @@ class VerificationParameters:
     feature_detector: VerificationDetector = "orb"
     max_features: int = 1000  # strongest features kept per frame
     image_max_side: int = 320  # frames are shrunk to this before feature detection
+    # A frame with fewer features than this at image_max_side is detected again at twice that
+    # side (never past its own size): on RTAB-Map (512x384) the dim, plain frames are where
+    # verification failed, and a finer look finds what 320 px lost (docs/results.md, "A finer
+    # look at feature-poor frames"). 0: never.
+    detail_below: int = 150
     ratio: float = 0.8  # Lowe ratio test on the two nearest descriptors
     method: RobustMethod = "magsac"  # cv2.USAC_MAGSAC, or cv2.FM_RANSAC / cv2.RANSAC
     ransac_threshold_px: float = 1.0  # epipolar distance (feature-image px) of an inlier
@@ -86,6 +91,8 @@ class VerificationParameters:
             raise ParameterError(
                 f"min_inliers must be >= {MIN_ACCEPTABLE_INLIERS}, got {self.min_inliers}"
             )
+        if self.detail_below < 0:
+            raise ParameterError(f"detail_below must be >= 0, got {self.detail_below}")
         if self.refine_radius < 0:
             raise ParameterError(f"refine_radius must be >= 0, got {self.refine_radius}")
         if not 0 < self.max_rotation_deg <= 180:
