@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -395,3 +396,31 @@ def test_property_any_depth_message_decodes_or_says_why(
         assert error.problem
         return
     assert metres.shape == (height, width) and width * height <= 64
+
+
+# -- the generator's option ----------------------------------------------------------------------
+
+
+def test_the_option_is_recorded_only_when_on(tmp_path: Path) -> None:
+    """Logs without depth keep their bytes: no depth field in their metadata or .json."""
+    assert "depth" not in gen.Config().recorded()
+    assert gen.Config(depth=True).recorded()["depth_encoding"] == "32FC1"
+    config = replace(DRIVE, depth_encoding="16UC1")
+    line = gen.command_line(config, str(tmp_path))
+    assert line.endswith("--depth --depth-encoding 16UC1")
+    args = gen._parser().parse_args(line.split()[2:])
+    assert gen._config(args) == config
+    assert "--depth" not in gen.command_line(replace(DRIVE, depth=False))
+    with pytest.raises(SystemExit):
+        gen.main(["--out", str(tmp_path), "--depth-encoding", "16UC1"])
+    # The samples' README lists the depth topics only for a sample set that has them.
+    rows = gen._depth_rows([SimpleNamespace(config=config)])  # type: ignore[list-item]
+    assert len(rows) == 2 and "`16UC1`" in rows[0]
+    assert gen._depth_rows([SimpleNamespace(config=gen.Config())]) == []  # type: ignore[list-item]
+
+
+def test_depth_logs_are_the_same_bytes_with_worker_processes(tmp_path: Path) -> None:
+    config = replace(DRIVE, duration=2.0, width=64, height=48, formats=("ros2mcap",))
+    one = gen.generate(config, tmp_path / "one", jobs=1, progress=False)
+    two = gen.generate(config, tmp_path / "two", jobs=2, progress=False)
+    assert one.files["ros2mcap"].read_bytes() == two.files["ros2mcap"].read_bytes()
