@@ -70,6 +70,10 @@ class ImageDecodeError(DoseqslamError):
         self.problem = problem
 
 
+class DepthTopicError(UsageError):
+    """A depth topic asked for is absent from the log or does not carry depth images."""
+
+
 class GroundTruthError(UsageError):
     """A ground-truth file could not be read or does not fit the frames."""
 

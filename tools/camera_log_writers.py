@@ -11,6 +11,10 @@ that the container code exists once:
 * ``bag`` - ROS 1 bag v2.0 (chunk compression none, bz2 or lz4);
 * ``db3`` - ROS 2 bag directory: sqlite3 storage plus metadata.yaml.
 
+An aligned depth image (encoding ``32FC1``, metres, or ``16UC1``, millimetres; REP 118) is an
+`ImageFrame` too: it goes to `Topics.depth_image` as sensor_msgs/Image (Foxglove: RawImage),
+and `write_camera_info(..., topic=Topics.depth_camera_info)` gives it its CameraInfo.
+
 ROS messages are built and serialized with the rosbags type stores (CDR for ROS 2, ROS 1 wire
 format for bags), so the two ROS 2 containers carry byte-identical message payloads.
 
@@ -61,6 +65,9 @@ MCAP_LIBRARY: Final = "doseqslam-logs camera_log_writers"
 
 COMPRESSED_FORMATS: Final = ("jpeg", "png")
 RAW_ENCODINGS: Final = {"mono8": 1, "rgb8": 3, "bgr8": 3}
+# Depth images as ROS RGB-D drivers write them (REP 118): bytes per pixel, little-endian.
+DEPTH_ENCODINGS: Final = {"32FC1": 4, "16UC1": 2}
+_PIXEL_BYTES: Final = {**RAW_ENCODINGS, **DEPTH_ENCODINGS}
 
 _MCAP_COMPRESSION: Final = {
     "none": CompressionType.NONE,
@@ -87,6 +94,8 @@ class Topics:
     compressed_image: str = "/camera/image/compressed"
     raw_image: str = "/camera/image_raw"
     camera_info: str = "/camera/camera_info"
+    depth_image: str = "/camera/depth/image"
+    depth_camera_info: str = "/camera/depth/camera_info"
     odometry: str = "/odom"
     ground_truth: str = "/ground_truth/pose"
     camera_frame: str = "camera"
@@ -99,8 +108,9 @@ class Topics:
 class ImageFrame:
     """One camera image, already encoded.
 
-    `encoding` is "jpeg" or "png" for a compressed image (data = the file bytes) or a ROS raw
-    encoding ("mono8", "rgb8", "bgr8"; data = rows without padding) for a raw one.
+    `encoding` is "jpeg" or "png" for a compressed image (data = the file bytes), a ROS raw
+    encoding ("mono8", "rgb8", "bgr8"; data = rows without padding) for a raw one, or a depth
+    encoding ("32FC1", "16UC1"; little-endian rows without padding) for a depth image.
     """
 
     stamp_ns: int
@@ -113,13 +123,17 @@ class ImageFrame:
     def compressed(self) -> bool:
         return self.encoding in COMPRESSED_FORMATS
 
+    @property
+    def depth(self) -> bool:
+        return self.encoding in DEPTH_ENCODINGS
+
     def __post_init__(self) -> None:
         if self.compressed:
             return
-        channels = RAW_ENCODINGS.get(self.encoding)
-        if channels is None:
+        pixel_bytes = _PIXEL_BYTES.get(self.encoding)
+        if pixel_bytes is None:
             raise ValueError(f"unknown image encoding {self.encoding!r}")
-        if len(self.data) != self.width * self.height * channels:
+        if len(self.data) != self.width * self.height * pixel_bytes:
             raise ValueError(
                 f"{self.encoding} image data does not match {self.width}x{self.height}"
             )
@@ -234,8 +248,13 @@ class CameraLogWriter(ABC):
 
     @abstractmethod
     def write_camera_info(
-        self, camera: CameraIntrinsics, stamp_ns: int, log_time_ns: int | None = None
-    ) -> None: ...
+        self,
+        camera: CameraIntrinsics,
+        stamp_ns: int,
+        log_time_ns: int | None = None,
+        topic: str | None = None,
+    ) -> None:
+        """CameraInfo on `topic` (default `Topics.camera_info`)."""
 
     @abstractmethod
     def write_odometry(self, odom: OdometrySample, log_time_ns: int | None = None) -> None: ...
@@ -280,6 +299,8 @@ class CameraLogWriter(ABC):
 
 
 def _image_topic(topics: Topics, frame: ImageFrame) -> str:
+    if frame.depth:
+        return topics.depth_image
     return topics.compressed_image if frame.compressed else topics.raw_image
 
 
@@ -314,7 +335,7 @@ class _RosMessages:
             typename = "sensor_msgs/msg/CompressedImage"
             return typename, self.types[typename](header=header, format=frame.encoding, data=data)
         typename = "sensor_msgs/msg/Image"
-        step = frame.width * RAW_ENCODINGS[frame.encoding]
+        step = frame.width * _PIXEL_BYTES[frame.encoding]
         msg = self.types[typename](
             header=header,
             height=frame.height,
@@ -409,9 +430,13 @@ class _RosWriter(CameraLogWriter):
         self._emit(topic, typename, msg, frame.stamp_ns, _or(log_time_ns, frame.stamp_ns))
 
     def write_camera_info(
-        self, camera: CameraIntrinsics, stamp_ns: int, log_time_ns: int | None = None
+        self,
+        camera: CameraIntrinsics,
+        stamp_ns: int,
+        log_time_ns: int | None = None,
+        topic: str | None = None,
     ) -> None:
-        topic = self.topics.camera_info
+        topic = topic or self.topics.camera_info
         typename, msg = self._msgs.camera_info(topic, camera, stamp_ns, self.topics.camera_frame)
         self._emit(topic, typename, msg, stamp_ns, _or(log_time_ns, stamp_ns))
 
@@ -525,14 +550,18 @@ class FoxgloveMcapWriter(CameraLogWriter):
                 width=frame.width,
                 height=frame.height,
                 encoding=frame.encoding,
-                step=frame.width * RAW_ENCODINGS[frame.encoding],
+                step=frame.width * _PIXEL_BYTES[frame.encoding],
                 data=frame.data,
             )
         topic = _image_topic(self.topics, frame)
         self._emit(topic, msg, frame.stamp_ns, _or(log_time_ns, frame.stamp_ns))
 
     def write_camera_info(
-        self, camera: CameraIntrinsics, stamp_ns: int, log_time_ns: int | None = None
+        self,
+        camera: CameraIntrinsics,
+        stamp_ns: int,
+        log_time_ns: int | None = None,
+        topic: str | None = None,
     ) -> None:
         msg = CameraCalibration(
             timestamp=_timestamp(stamp_ns),
@@ -545,7 +574,8 @@ class FoxgloveMcapWriter(CameraLogWriter):
             R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             P=camera.p(),
         )
-        self._emit(self.topics.camera_info, msg, stamp_ns, _or(log_time_ns, stamp_ns))
+        topic = topic or self.topics.camera_info
+        self._emit(topic, msg, stamp_ns, _or(log_time_ns, stamp_ns))
 
     def _pose_in_frame(self, pose: PlanarPose, frame_id: str) -> PoseInFrame:
         qx, qy, qz, qw = pose.quaternion()

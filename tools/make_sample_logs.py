@@ -28,6 +28,14 @@ Saved as .npz key "gt" (uint8, dense) up to DENSE_GT_MAX_FRAMES frames, above th
 scipy.sparse CSR .npz (scipy.sparse.load_npz). Poses (frame, stamp_ns, t, x, y, yaw) go to a
 .csv, the run's parameters and facts (parked span, dropped frames, counts) to a .json.
 
+With --depth, every log also carries an aligned depth image per camera frame, as an RGB-D
+camera's ROS driver writes it (REP 118): `/camera/depth/image` (sensor_msgs/Image, Foxglove:
+RawImage; same stamp, size and pinhole model as the camera image) with its own
+`/camera/depth/camera_info`. Encoding 32FC1: metres along the optical axis (z, not the ray
+length), NaN where a ray hits nothing (the sky); or, with --depth-encoding 16UC1, millimetres
+with 0 for nothing hit or farther than 65.535 m. The depth is the ray-cast geometry itself: no
+noise, no blur, no quantisation but the encoding's.
+
 Every output is byte-deterministic per seed and parameters (also with --jobs > 1): frame i's
 noise comes from its own generator seeded by (seed, i). See camera_log_writers for the
 containers. Run `python tools/make_sample_logs.py --samples` to regenerate sample_logs/.
@@ -65,6 +73,8 @@ F64 = npt.NDArray[Any]  # float64
 I64 = npt.NDArray[Any]  # int64
 U8 = npt.NDArray[Any]  # uint8
 Route = Literal["loops", "figure8", "outandback"]
+DepthEncoding = Literal["32FC1", "16UC1"]
+DEPTH_ENCODINGS: Final[tuple[DepthEncoding, ...]] = ("32FC1", "16UC1")
 ROUTES: Final[tuple[Route, ...]] = ("loops", "figure8", "outandback")
 
 # -- documented constants --------------------------------------------------------------------------
@@ -946,6 +956,27 @@ class Renderer:
 
     def render(self, px: float, py: float, yaw: float, light: F64, index: int) -> U8:
         """One frame (H x W x 3 RGB or H x W grey, uint8); `index` seeds its noise."""
+        return self._render(px, py, yaw, light, index)[0]
+
+    def render_with_depth(
+        self, px: float, py: float, yaw: float, light: F64, index: int
+    ) -> tuple[U8, F32]:
+        """The frame of `render` and its depth (H x W float32, metres along the optical axis,
+        NaN where the pixel shows the sky)."""
+        frame, z, wall = self._render(px, py, yaw, light, index)
+        return frame, self._depth(z, wall)
+
+    def _depth(self, z: F32, wall: Any) -> F32:
+        """Walls at their column's depth, the ground plane below the horizon, NaN above."""
+        depth = np.full((self.spec.height, self.spec.width), np.nan, np.float32)
+        depth[self.below] = self.ground_z[:, None]
+        out: F32 = np.where(wall, z[None, :], depth).astype(np.float32)
+        return out
+
+    def _render(
+        self, px: float, py: float, yaw: float, light: F64, index: int
+    ) -> tuple[U8, F32, Any]:
+        """(frame, per-column wall depth, wall mask)."""
         z, edge, u = self._cast(px, py, yaw)
         mask, wall, tint = self._walls(z, edge, u, light)
         lum = np.where(mask, wall, self._background(px, py, yaw, light))
@@ -964,7 +995,7 @@ class Renderer:
             for c, p in enumerate(planes)
         ]
         frame: U8 = cv2.merge(out) if self.spec.color else out[0]
-        return frame
+        return frame, z, mask
 
     def _expose(self, plane: F32, channel: int, gamma: float, index: int) -> U8:
         """Gamma curve through a look-up table, then sensor noise and 8-bit quantisation."""
@@ -1087,6 +1118,8 @@ class Config:
     latency_ms: float = 0.0  # image receive latency: log time = stamp + latency
     bag_compression: clw.BagCompression = "none"
     mcap_compression: clw.McapCompression = "zstd"
+    depth: bool = False  # an aligned depth topic (see the module docstring)
+    depth_encoding: DepthEncoding = "32FC1"
 
     def lap(self) -> float:
         if self.lap_length is not None:
@@ -1101,6 +1134,14 @@ class Config:
 
     def render_spec(self) -> RenderSpec:
         return RenderSpec(self.width, self.height, self.color, self.noise_sigma)
+
+    def recorded(self) -> dict[str, Any]:
+        """The fields a log's metadata and .json record. The depth fields only when depth is
+        on, so that logs without it keep the bytes they had before the option existed."""
+        values = asdict(self)
+        if not self.depth:
+            del values["depth"], values["depth_encoding"]
+        return values
 
 
 # Shorter routes would not leave room for blocks between the street's passes.
@@ -1122,6 +1163,21 @@ class Result:
     world: World
 
 
+def depth_bytes(depth: F32, encoding: DepthEncoding) -> bytes:
+    """A depth image as a little-endian message body: 32FC1 metres (NaN kept) or 16UC1
+    millimetres (0 where nothing was hit or the depth does not fit in 16 bits)."""
+    if encoding == "32FC1":
+        return depth.astype("<f4").tobytes()
+    with np.errstate(invalid="ignore"):
+        mm = np.rint(depth.astype(np.float64) * 1000.0)
+        valid = np.isfinite(mm) & (mm >= 1) & (mm <= 65535)
+    return np.where(valid, mm, 0).astype("<u2").tobytes()
+
+
+# One frame's message bodies: the encoded image and, with --depth, the depth image.
+FrameData = tuple[bytes, bytes | None]
+
+
 def encode(img: U8, config: Config) -> tuple[bytes, str]:
     """(data, encoding) of one rendered frame as the log stores it."""
     if config.image == "raw":
@@ -1141,12 +1197,15 @@ class _FrameMaker:
         self.drive = drive
         self.config = config
 
-    def make(self, i: int) -> bytes:
+    def make(self, i: int) -> FrameData:
         d = self.drive
-        img = self.renderer.render(float(d.x[i]), float(d.y[i]), float(d.yaw[i]), d.light[i], i)
-        return encode(img, self.config)[0]
+        pose = (float(d.x[i]), float(d.y[i]), float(d.yaw[i]))
+        if not self.config.depth:
+            return encode(self.renderer.render(*pose, d.light[i], i), self.config)[0], None
+        img, depth = self.renderer.render_with_depth(*pose, d.light[i], i)
+        return encode(img, self.config)[0], depth_bytes(depth, self.config.depth_encoding)
 
-    def block(self, start: int, stop: int) -> list[bytes]:
+    def block(self, start: int, stop: int) -> list[FrameData]:
         return [self.make(i) for i in range(start, stop)]
 
 
@@ -1177,13 +1236,13 @@ def _init_worker(world: World, drive: Drive, config: Config) -> None:
     _WORKER = _FrameMaker(world, drive, config)
 
 
-def _work(start: int, stop: int) -> list[bytes]:
+def _work(start: int, stop: int) -> list[FrameData]:
     assert _WORKER is not None
     return _WORKER.block(start, stop)
 
 
-def render_frames(world: World, drive: Drive, config: Config, jobs: int) -> Iterator[bytes]:
-    """Encoded frames in order; with jobs > 1, blocks render in worker processes."""
+def render_frames(world: World, drive: Drive, config: Config, jobs: int) -> Iterator[FrameData]:
+    """Encoded frames (and depth) in order; with jobs > 1, blocks render in worker processes."""
     n = len(drive.x)
     _keep_heap()
     if jobs <= 1:
@@ -1195,7 +1254,7 @@ def render_frames(world: World, drive: Drive, config: Config, jobs: int) -> Iter
     ctx = multiprocessing.get_context("spawn")
     block = 8
     with ctx.Pool(jobs, _init_worker, (world, drive, config)) as pool:
-        pending: deque[AsyncResult[list[bytes]]] = deque()
+        pending: deque[AsyncResult[list[FrameData]]] = deque()
         for start in range(0, n, block):  # keep a bounded number of blocks in flight
             pending.append(pool.apply_async(_work, (start, min(start + block, n))))
             if len(pending) >= 3 * jobs:
@@ -1224,7 +1283,7 @@ def _open_writers(config: Config, out: Path) -> dict[str, clw.CameraLogWriter]:
 
 
 def _metadata(config: Config) -> dict[str, str]:
-    values = {k: v for k, v in asdict(config).items()}
+    values = config.recorded()
     values["formats"] = ",".join(config.formats)
     values["tool"] = "tools/make_sample_logs.py"
     return {k: str(v) for k, v in sorted(values.items())}
@@ -1234,7 +1293,7 @@ def _write_frame(
     writers: Sequence[clw.CameraLogWriter],
     drive: Drive,
     i: int,
-    data: bytes,
+    data: FrameData,
     config: Config,
     camera: clw.CameraIntrinsics,
 ) -> None:
@@ -1244,13 +1303,21 @@ def _write_frame(
     truth = clw.PlanarPose(stamp, float(drive.x[i]), float(drive.y[i]), float(drive.yaw[i]))
     truth = replace(truth, z=CAMERA_HEIGHT_M)
     encoding = "jpeg" if config.image == "jpeg" else ("rgb8" if config.color else "mono8")
-    frame = clw.ImageFrame(stamp, data, encoding, config.width, config.height)
+    image, depth = data
+    frame = clw.ImageFrame(stamp, image, encoding, config.width, config.height)
     latency = round(config.latency_ms * 1e6)
     for writer in writers:
         writer.write_camera_info(camera, stamp)
+        if depth is not None:
+            writer.write_camera_info(camera, stamp, topic=writer.topics.depth_camera_info)
         writer.write_odometry(odom)
         writer.write_ground_truth(truth)
         writer.write_image(frame, stamp + latency)
+        if depth is not None:
+            depth_frame = clw.ImageFrame(
+                stamp, depth, config.depth_encoding, config.width, config.height
+            )
+            writer.write_image(depth_frame, stamp + latency)
 
 
 def _side_files(config: Config, out: Path, drive: Drive) -> tuple[dict[str, Path], int, int]:
@@ -1285,7 +1352,9 @@ def _info(config: Config, drive: Drive, cells: int, events: int) -> dict[str, An
             "frames": [int(inside[0]), int(inside[-1])],
         }
     return {
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(config).items()},
+        "config": {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in config.recorded().items()
+        },
         "lap_length_m": round(config.lap(), 3),
         "frames": len(stamps),
         "nominal_frames": drive.nominal_frames,
@@ -1402,6 +1471,8 @@ def command_line(config: Config, out: str = "sample_logs") -> str:
         (config.latency_ms > 0, f"--latency-ms {config.latency_ms:g}"),
         (config.bag_compression != "none", f"--bag-compression {config.bag_compression}"),
         (config.mcap_compression != "zstd", f"--mcap-compression {config.mcap_compression}"),
+        (config.depth, "--depth"),
+        (config.depth and config.depth_encoding != "32FC1", "--depth-encoding 16UC1"),
     ]
     args += [flag for wanted, flag in optional if wanted]
     return "python tools/make_sample_logs.py " + " ".join(args)
@@ -1468,6 +1539,20 @@ def _sample_section(result: Result, out: Path) -> list[str]:
     return lines
 
 
+def _depth_rows(results: Sequence[Result]) -> list[str]:
+    """The depth topics' rows of the README's topic table, when some log carries them."""
+    encodings = sorted({r.config.depth_encoding for r in results if r.config.depth})
+    if not encodings:
+        return []
+    return [
+        "| `/camera/depth/image` | sensor_msgs/Image, encoding "
+        + " or ".join(f"`{e}`" for e in encodings)
+        + ": aligned depth along the optical axis (32FC1 metres, NaN = sky; 16UC1 mm, 0 ="
+        " invalid) |",
+        "| `/camera/depth/camera_info` | sensor_msgs/CameraInfo: the same as the camera's |",
+    ]
+
+
 def sample_readme(results: Sequence[Result], out: Path) -> str:
     total = sum(clw.path_size(p) for r in results for p in r.files.values())
     head = [
@@ -1520,6 +1605,7 @@ def sample_readme(results: Sequence[Result], out: Path) -> str:
         " cx = W/2, cy = H/2, no distortion |",
         "| `/odom` | nav_msgs/Odometry: wheel odometry from noisy velocities (drifts) |",
         "| `/ground_truth/pose` | geometry_msgs/PoseStamped: the true camera pose, frame `map` |",
+        *_depth_rows(results),
         "",
         "Header stamps are the frame times (first frame at 1700000000 s); log time equals the",
         "stamp unless a receive latency is noted.",
@@ -1571,6 +1657,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--latency-ms", type=float, default=0.0, help="image log time - stamp")
     p.add_argument("--bag-compression", choices=("none", "bz2", "lz4"), default="none")
     p.add_argument("--mcap-compression", choices=("none", "lz4", "zstd"), default="zstd")
+    p.add_argument("--depth", action="store_true", help="also write an aligned depth topic")
+    p.add_argument(
+        "--depth-encoding",
+        choices=DEPTH_ENCODINGS,
+        help="with --depth: 32FC1 (metres, the default) or 16UC1 (millimetres)",
+    )
     p.add_argument("--jobs", type=int, default=1, help="rendering worker processes")
     return p
 
@@ -1596,6 +1688,8 @@ def _config(args: argparse.Namespace) -> Config:
         latency_ms=args.latency_ms,
         bag_compression=args.bag_compression,
         mcap_compression=args.mcap_compression,
+        depth=args.depth,
+        depth_encoding=args.depth_encoding or "32FC1",
     )
 
 
@@ -1619,6 +1713,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             results = make_samples(args.out or REPO / "sample_logs", args.jobs)
         elif args.out is None:
             _parser().error("--out is required (or use --samples)")
+        elif args.depth_encoding and not args.depth:
+            _parser().error("--depth-encoding needs --depth")
         else:
             results = [generate(_config(args), args.out, args.jobs)]
     except ValueError as exc:

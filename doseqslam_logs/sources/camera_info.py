@@ -59,16 +59,18 @@ def _is_camera_info(message_type: str) -> bool:
 
 def _closest(topics: list[str], image_topic: str) -> str | None:
     """The topic sharing the longest '/'-separated prefix with the image topic."""
+    return max(sorted(topics), key=lambda t: shared_prefix(t, image_topic), default=None)
 
-    def shared(topic: str) -> int:
-        common = 0
-        for a, b in zip(topic.split("/"), image_topic.split("/"), strict=False):
-            if a != b:
-                break
-            common += 1
-        return common
 
-    return max(sorted(topics), key=shared, default=None)
+def shared_prefix(topic: str, other: str) -> int:
+    """How many leading '/'-separated parts two topic names share (the empty part before a
+    leading '/' counts: "/a/b" and "/a/c" share 2)."""
+    common = 0
+    for a, b in zip(topic.split("/"), other.split("/"), strict=False):
+        if a != b:
+            break
+        common += 1
+    return common
 
 
 def _camera_info(topic: str, message: Any) -> CameraInfo | None:

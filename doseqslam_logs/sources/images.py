@@ -190,7 +190,7 @@ def _decode_raw(msg: ImageMessage) -> Gray:
         raise ImageDecodeError(
             f"{_where(msg)}: unknown raw image encoding {msg.encoding!r}", UNKNOWN_ENCODING
         )
-    rows = _pixel_rows(msg, layout.bytes_per_pixel)
+    rows = pixel_rows(msg, layout.bytes_per_pixel)
     try:
         return layout.to_gray(rows, msg)
     except cv2.error as exc:
@@ -201,7 +201,7 @@ def _decode_raw(msg: ImageMessage) -> Gray:
         ) from exc
 
 
-def _pixel_rows(msg: ImageMessage, bytes_per_pixel: int) -> Rows:
+def pixel_rows(msg: ImageMessage, bytes_per_pixel: int) -> Rows:
     """The pixel bytes as (height, width * bytes_per_pixel), row padding (`step`) removed."""
     width, height, step = msg.width, msg.height, msg.step
     if not msg.data:
