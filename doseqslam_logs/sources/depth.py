@@ -22,11 +22,11 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
-from doseqslam_logs.errors import DepthTopicError, ImageDecodeError, SourceError
-from doseqslam_logs.sources.base import DecodedMessage, ImageMessage, Source
-from doseqslam_logs.sources.camera_info import shared_prefix
-from doseqslam_logs.sources.image_header import DEFAULT_MAX_PIXELS
-from doseqslam_logs.sources.images import (
+from ..errors import DepthTopicError, ImageDecodeError, SourceError
+from .base import DecodedMessage, ImageMessage, Source
+from .camera_info import shared_prefix
+from .image_header import DEFAULT_MAX_PIXELS
+from .images import (
     IMAGE_TYPES,
     UNDESERIALIZABLE,
     RecordInfo,
