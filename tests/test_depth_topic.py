@@ -23,7 +23,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from doseqslam_logs.errors import DepthTopicError, ImageDecodeError
-from doseqslam_logs.sources import open_source
+from doseqslam_logs.sources import open_source, pick_image_topic
 from doseqslam_logs.sources.base import ImageMessage
 from doseqslam_logs.sources.camera_info import read_camera_info
 from doseqslam_logs.sources.depth import (
@@ -232,6 +232,14 @@ def test_committed_samples_have_no_depth_topic() -> None:
         if path.suffix in (".mcap", ".bag", ".rosbag2"):
             with open_source(path) as source:
                 assert find_depth_topic(source, IMAGE) is None, path
+
+
+@pytest.mark.parametrize("fmt", [*CONTAINERS, "foxglove"])
+def test_the_camera_of_an_rgbd_log_is_its_image_not_its_depth(drive: gen.Result, fmt: str) -> None:
+    # annotate without --topic: the depth topic is an image topic too, but never the camera.
+    with open_source(drive.files[fmt]) as source:
+        assert pick_image_topic(source) == IMAGE
+        assert pick_image_topic(source, DEPTH) == DEPTH  # still readable when asked for
 
 
 def test_a_depth_topic_asked_for_is_checked(drive: gen.Result) -> None:

@@ -138,6 +138,14 @@ def _same_topic(a: str, b: str) -> bool:
     return a.lstrip("/") == b.lstrip("/")
 
 
+def _without_depth(source: Source, channels: list[ChannelInfo], names: list[str]) -> list[str]:
+    """`names` less the topics that hold depth images (all of them when every one does)."""
+    from .depth import is_depth_topic  # depth reads through this package's sources
+
+    types = {c.topic: c.message_type for c in channels}
+    return [n for n in names if not is_depth_topic(source, n, types[n])] or names
+
+
 def pick_image_topic(source: Source, topic: str | None = None) -> str:
     """The log's image topic: the only one, or `topic` (with or without a leading slash).
 
@@ -153,6 +161,8 @@ def pick_image_topic(source: Source, topic: str | None = None) -> str:
     if topic is None:
         # An annotated log's match images (/doseqslam/match/...) are never its camera.
         names = [n for n in names if not n.startswith("/doseqslam/")] or names
+        if len(names) > 1:  # an RGB-D camera's depth topic is not a camera to read
+            names = _without_depth(source, channels, names)
         if len(names) == 1:
             return names[0]
         if not names:

@@ -91,12 +91,18 @@ def find_depth_topic(source: Source, image_topic: str, asked: str | None = None)
     candidates = [
         topic
         for topic, message_type in channels.items()
-        if topic != image_topic and _is_raw_image(message_type) and _first_is_depth(source, topic)
+        if topic != image_topic and is_depth_topic(source, topic, message_type)
     ]
     best = max(sorted(candidates), key=lambda t: shared_prefix(t, image_topic), default=None)
     if best is None or shared_prefix(best, image_topic) < _MIN_SHARED_PARTS:
         return None
     return best
+
+
+def is_depth_topic(source: Source, topic: str, message_type: str) -> bool:
+    """Whether a channel holds depth images (a raw image type whose first message has a depth
+    encoding): such a topic is an RGB-D camera's range, never the camera the detector reads."""
+    return _is_raw_image(message_type) and _first_is_depth(source, topic)
 
 
 def _is_raw_image(message_type: str) -> bool:
