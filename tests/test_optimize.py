@@ -241,15 +241,18 @@ def test_one_wrong_loop_edge_is_rejected_and_does_not_bend_the_trajectory(
 
 @pytest.fixture(scope="module")
 def unverified(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """drive_loops annotated without verification (fast), as Foxglove protobuf and ROS 1."""
+    """drive_loops annotated without verification (fast), as Foxglove protobuf and ROS 1,
+    and a ROS 2 sidecar."""
     folder = tmp_path_factory.mktemp("profiles")
     logs = {"foxglove": "drive_loops.foxglove.mcap", "ros1": "drive_loops.bag"}
     annotated = {}
     for name, log in logs.items():
         annotated[name] = folder / f"{name}.annotated.mcap"
-        assert (
-            main(["annotate", str(SAMPLES / log), "-o", str(annotated[name]), "--no-verify"]) == 0
-        )
+        args = [str(SAMPLES / log), "-o", str(annotated[name]), "--no-verify"]
+        assert main(["annotate", *args]) == 0
+    annotated["sidecar"] = folder / "sidecar.mcap"
+    args = [str(SAMPLES / "drive_loops.ros2.mcap"), "-o", str(annotated["sidecar"])]
+    assert main(["annotate", *args, "--no-verify", "--sidecar"]) == 0
     return annotated
 
 
@@ -279,6 +282,25 @@ def test_the_poses_take_the_type_of_the_logs_profile(
     poses = read_poses(out, OPTIMIZED_POSE_TOPIC)
     assert len(poses) == 240
     assert summary["frame_id"] == "odom"
+
+
+@pytest.mark.slow
+def test_a_sidecar_takes_its_poses_from_the_original_log(
+    unverified: dict[str, Path], tmp_path: Path
+) -> None:
+    sidecar, out = unverified["sidecar"], tmp_path / "optimized.mcap"
+    args = [str(sidecar), "--odometry-topic", "/odom", "-o", str(out)]
+    assert main(["optimize", *args]) == 3  # a sidecar holds no odometry
+    poses_from = ["--poses-from", str(SAMPLES / "drive_loops.ros2.mcap")]
+    assert main(["optimize", *args, *poses_from]) == 0
+    with open_source(out) as source:
+        types = {c.topic: c.message_type for c in source.channels()}
+    assert types == {
+        "/doseqslam/loop_closures": "doseqslam_msgs/msg/LoopClosure",
+        "/doseqslam/sequences": "doseqslam_msgs/msg/Sequence",
+        OPTIMIZED_POSE_TOPIC: "geometry_msgs/msg/PoseStamped",
+    }
+    assert len(read_poses(out, OPTIMIZED_POSE_TOPIC)) == 240
 
 
 @pytest.mark.slow
@@ -321,3 +343,80 @@ def test_errors_exit_with_their_documented_codes(
     assert len(err.splitlines()) == 1 and message in err
     assert not out.exists()
     assert log.read_bytes() == before
+
+
+# -- the pose topic in a JSON profile, and the copy ------------------------------------------
+
+
+def _small_json_log(path: Path) -> None:
+    """An MCAP of the Foxglove JSON kind: one JSON channel, an attachment, a metadata record."""
+    from mcap.writer import Writer
+
+    with path.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema("Note", "jsonschema", b'{"type":"object"}')
+        channel = writer.register_channel("/notes", "json", schema)
+        for k in range(4):
+            data = json.dumps({"n": k}).encode()
+            writer.add_message(channel, 10 + 10 * k, data, 10 + 10 * k, k)
+        writer.add_attachment(1, 2, "calibration.txt", "text/plain", b"fx 100")
+        writer.add_metadata("site", {"robot": "r1"})
+        writer.finish()
+
+
+def _records(path: Path) -> dict[str, Any]:
+    from mcap.reader import make_reader
+
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        messages = [(c.topic, m.log_time, m.data) for _, c, m in reader.iter_messages()]
+        attachments = [(a.name, a.data) for a in reader.iter_attachments()]
+        metadata = [(m.name, m.metadata) for m in reader.iter_metadata()]
+        profile = reader.get_header().profile
+    return {"messages": messages, "attachments": attachments, "metadata": metadata, "p": profile}
+
+
+def test_a_json_profile_gets_pose_in_frame_as_json_and_every_record_is_copied(
+    tmp_path: Path,
+) -> None:
+    from doseqslam_logs.sinks.pose_topic import PoseStream, write_with_poses
+
+    log, out, again = tmp_path / "log.mcap", tmp_path / "out.mcap", tmp_path / "again.mcap"
+    _small_json_log(log)
+    positions = np.array([[1.0, 2.0, 0.0], [2.0, 2.5, 0.0], [3.0, 3.0, 0.1]])
+    quaternions = np.array([IDENTITY, [0.0, 0.0, 0.6, 0.8], IDENTITY])
+    stream = PoseStream(
+        topic=OPTIMIZED_POSE_TOPIC,
+        frame_id="odom",
+        log_times_ns=np.array([15, 25, 45], np.int64),
+        stamps_ns=np.array([5_000_000_001, 5_000_000_002, 5_000_000_003], np.int64),
+        positions=positions,
+        quaternions_xyzw=quaternions,
+        foxglove_encoding="json",
+    )
+    summary = write_with_poses(log, out, stream)
+    assert (summary.copied_messages, summary.pose_messages) == (4, 3)
+    with open_source(out) as source:
+        channel = next(c for c in source.channels() if c.topic == OPTIMIZED_POSE_TOPIC)
+        first = next(iter(source.messages(OPTIMIZED_POSE_TOPIC))).message
+    assert (channel.message_type, channel.message_encoding) == ("foxglove.PoseInFrame", "json")
+    assert first.frame_id == "odom"
+    poses = read_poses(out, OPTIMIZED_POSE_TOPIC)
+    np.testing.assert_array_equal(poses.times_ns, stream.stamps_ns)
+    np.testing.assert_array_equal(poses.positions, positions)
+    np.testing.assert_allclose(poses.quaternions_xyzw, quaternions)
+    before, after = _records(log), _records(out)
+    ours = [m for m in after["messages"] if m[0] == OPTIMIZED_POSE_TOPIC]
+    assert [m for m in after["messages"] if m[0] != OPTIMIZED_POSE_TOPIC] == before["messages"]
+    assert [m[1] for m in after["messages"]] == [10, 15, 20, 25, 30, 40, 45]  # interleaved
+    assert len(ours) == 3
+    assert (after["attachments"], after["metadata"], after["p"]) == (
+        before["attachments"],
+        before["metadata"],
+        before["p"],
+    )
+    # Written again over its own output's topic: replaced, not doubled.
+    replaced = write_with_poses(out, again, stream)
+    assert replaced.replaced_topic
+    assert _records(again)["messages"] == after["messages"]
