@@ -301,6 +301,11 @@ def test_a_sidecar_takes_its_poses_from_the_original_log(
         OPTIMIZED_POSE_TOPIC: "geometry_msgs/msg/PoseStamped",
     }
     assert len(read_poses(out, OPTIMIZED_POSE_TOPIC)) == 240
+    original = tmp_path / "original.mcap"  # a copy: the refusal is what is tested
+    original.write_bytes((SAMPLES / "drive_loops.ros2.mcap").read_bytes())
+    over_the_poses = [str(sidecar), "--odometry-topic", "/odom", "--poses-from", str(original)]
+    assert main(["optimize", *over_the_poses, "-o", str(original)]) == 6
+    assert original.read_bytes() == (SAMPLES / "drive_loops.ros2.mcap").read_bytes()
 
 
 @pytest.mark.slow

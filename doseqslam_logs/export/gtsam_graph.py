@@ -230,7 +230,7 @@ def optimize_pose_graph(graph: PoseGraph, options: OptimizeOptions | None = None
         gtsam_graph = to_gtsam(graph, options, loops)
         done = _optimize_once(gtsam_graph, options)
         iterations, rounds = iterations + done.iterations, rounds + 1
-        if not options.outlier_check or rounds > MAX_OUTLIER_ROUNDS:
+        if not options.outlier_check or rounds >= MAX_OUTLIER_ROUNDS:
             break
         outliers = squared_loop_errors(gtsam_graph, done.result, loops) > options.outlier_bound
         if not outliers.any():

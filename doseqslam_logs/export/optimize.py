@@ -103,8 +103,9 @@ def optimize_log(
     if options.odometry_topic is None:
         raise UsageError("optimize needs --odometry-topic (e.g. /odom)")
     check_output_path(output)
-    if output.exists() and output.resolve() == log.resolve():
-        raise OutputError(f"{output}: the output would replace the input")
+    for source in (log, options.poses_log):
+        if source is not None and output.exists() and output.resolve() == source.resolve():
+            raise OutputError(f"{output}: the output would replace the input {source}")
     import_gtsam()  # before any reading: say at once that the extra is missing
     annotated = read_annotations(log)
     graph = build_pose_graph(annotated, options)
