@@ -8,6 +8,7 @@ computes it. Needs the `gtsam` extra.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,10 @@ import numpy.typing as npt
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
+from doseqslam_logs.export.base import ExportOptions
+from doseqslam_logs.export.gtsam_graph import OptimizeOptions, optimize_pose_graph
 from doseqslam_logs.export.loops import frame_times_ns
+from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph
 from doseqslam_logs.sources.poses import read_poses
 
 F64 = npt.NDArray[np.float64]
@@ -99,3 +103,38 @@ def trajectory_errors(paths: dict[str, Path]) -> tuple[float, float, Optimized]:
     true_positions = truth.interpolate(frame_times_ns(log)[optimized.keys]).positions
     before = umeyama_rmse(optimized.before, true_positions)
     return before, umeyama_rmse(optimized.after, true_positions), optimized
+
+
+def pose_graph_and_truth(annotated: Path) -> tuple[PoseGraph, F64]:
+    """The export's pose graph of `annotated` (odometry /odom, default loop-edge model) and the
+    true positions of its vertices (/ground_truth/pose)."""
+    log = read_annotations(annotated)
+    graph = build_pose_graph(log, ExportOptions(odometry_topic="/odom"))
+    truth = read_poses(annotated, "/ground_truth/pose")
+    return graph, truth.interpolate(frame_times_ns(log)[graph.vertex_ids]).positions
+
+
+def robust_errors(
+    graph: PoseGraph, truth: F64, options: OptimizeOptions | None = None
+) -> tuple[float, int]:
+    """ATE after `optimize_pose_graph` (the `optimize` command's optimization) and the loop
+    edges its outlier check rejected."""
+    optimized = optimize_pose_graph(graph, options)
+    return umeyama_rmse(optimized.positions, truth), len(optimized.rejected_loop_edges)
+
+
+def with_wrong_loops(graph: PoseGraph, truth: F64, count: int, seed: int = 0) -> PoseGraph:
+    """`graph` plus `count` wrong loop edges: between random vertices more than 15 m apart in
+    truth, with the loop-edge model of the first loop edge (zero translation, identity)."""
+    rng = np.random.default_rng(seed)
+    template = graph.loop_edges[0]
+    wrong: list[Edge] = []
+    while len(wrong) < count:
+        a, b = sorted(rng.choice(len(graph.vertex_ids), 2, replace=False))
+        if np.linalg.norm(truth[a] - truth[b]) > 15.0:
+            query, match = int(graph.vertex_ids[b]), int(graph.vertex_ids[a])
+            identity = np.array([0.0, 0.0, 0.0, 1.0])
+            wrong.append(
+                dataclasses.replace(template, from_id=query, to_id=match, quaternion_xyzw=identity)
+            )
+    return dataclasses.replace(graph, loop_edges=[*graph.loop_edges, *wrong])

@@ -19,9 +19,9 @@ from types import FrameType
 
 from .. import __version__
 from ..errors import DoseqslamError, ExitCode
-from . import annotate, batch, diff, evaluate, export, info
+from . import annotate, batch, diff, evaluate, export, info, optimize
 
-SUBCOMMANDS = (info, annotate, evaluate, diff, batch, export)
+SUBCOMMANDS = (info, annotate, evaluate, diff, batch, export, optimize)
 
 
 class Terminated(KeyboardInterrupt):
