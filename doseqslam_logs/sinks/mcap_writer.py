@@ -202,7 +202,7 @@ def mcap_profile(input_path: str | os.PathLike[str]) -> str:
 
 
 def _read_mcap_profile(path: Path) -> str:
-    with _reading(path), path.open("rb") as stream:
+    with reading_errors(path), path.open("rb") as stream:
         header = next(iter(StreamReader(stream).records))
     profile = getattr(header, "profile", None)
     if not isinstance(profile, str):
@@ -210,7 +210,7 @@ def _read_mcap_profile(path: Path) -> str:
     return profile
 
 
-class _reading:
+class reading_errors:
     """Context manager: failures while reading the input become one-line SourceErrors."""
 
     def __init__(self, path: Path) -> None:
@@ -238,7 +238,7 @@ R = TypeVar("R", bound=_Openable)
 @contextlib.contextmanager
 def _open_bag(path: Path, factory: Callable[[Path], R]) -> Iterator[R]:
     """An open rosbags reader; only opening it counts as reading (SourceError)."""
-    with _reading(path):
+    with reading_errors(path):
         reader = factory(path)
         reader.open()
     try:
@@ -248,11 +248,11 @@ def _open_bag(path: Path, factory: Callable[[Path], R]) -> Iterator[R]:
             reader.close()
 
 
-def _guarded(path: Path, items: Iterable[T]) -> Iterator[T]:
+def guarded_reads(path: Path, items: Iterable[T]) -> Iterator[T]:
     """`items`, with any failure while producing them raised as SourceError."""
     iterator = iter(items)
     while True:
-        with _reading(path):
+        with reading_errors(path):
             try:
                 item = next(iterator)
             except StopIteration:
@@ -371,13 +371,13 @@ class _McapCopier:
 
     def copy(self, path: Path) -> None:
         """Raises SourceError when the input cannot be read."""
-        with _reading(path):
+        with reading_errors(path):
             stream = path.open("rb")
         with stream:
             # CRCs checked: a corrupt chunk of any topic must fail the copy (or be left to
             # --recover), never be written out again under a fresh, valid CRC.
             records = StreamReader(stream, validate_crcs=True).records
-            for record in _guarded(path, records):
+            for record in guarded_reads(path, records):
                 self._copy_record(record, path)
         self._copy_unused_schemas()
 
@@ -505,7 +505,7 @@ class _BagCopier:
                 data = conn.msgdef.data.encode()
                 schema_id = self.schema(_ros1_schema_name(conn.msgtype), "ros1msg", data)
                 self.channel(conn.id, conn.topic, "ros1", schema_id, _ros1_channel_metadata(conn))
-            for conn, timestamp, raw in _guarded(path, reader.messages()):
+            for conn, timestamp, raw in guarded_reads(path, reader.messages()):
                 self.message(conn.id, timestamp, raw)
 
     def copy_rosbag2(self, path: Path) -> None:
@@ -520,7 +520,7 @@ class _BagCopier:
             decompress = _message_decompressor(reader.compression_mode)
             for number, storage in enumerate(storages):
                 messages = storage.messages(storage.connections)
-                for conn, timestamp, raw in _guarded(path, messages):
+                for conn, timestamp, raw in guarded_reads(path, messages):
                     self.message(keys[number, conn.id], timestamp, decompress(raw))
 
     def _rosbag2_channel(self, conn: Connection, definitions: _Ros2Definitions) -> tuple[str, ...]:

@@ -28,15 +28,16 @@ from mcap.writer import Writer
 from rosbags.typesys import Stores, get_typestore
 
 from ..annotations.records import time_dict
+from ..annotations.schema_files import read_schema
 from ..errors import SourceError
 from .atomic import atomic_output
 from .mcap_writer import (
     COMPRESSIONS,
     LIBRARY,
     OutputFormat,
-    _guarded,
-    _reading,
     detect_input,
+    guarded_reads,
+    reading_errors,
     refuse_same_file,
 )
 
@@ -46,37 +47,6 @@ I64 = npt.NDArray[np.int64]
 FoxgloveEncoding = Literal["protobuf", "json"]
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POSE_IN_FRAME = "foxglove.PoseInFrame"
-
-_VECTOR3 = {"type": "object", "properties": {a: {"type": "number"} for a in "xyz"}}
-# foxglove.PoseInFrame's JSON Schema, as Foxglove publishes it (fields and types).
-POSE_IN_FRAME_JSON_SCHEMA = {
-    "title": POSE_IN_FRAME,
-    "description": "A timestamped pose for an object or reference frame in 3D space",
-    "type": "object",
-    "properties": {
-        "timestamp": {
-            "type": "object",
-            "title": "time",
-            "properties": {
-                "sec": {"type": "integer", "minimum": 0},
-                "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999},
-            },
-        },
-        "frame_id": {"type": "string"},
-        "pose": {
-            "title": "foxglove.Pose",
-            "type": "object",
-            "properties": {
-                "position": {"title": "foxglove.Vector3", **_VECTOR3},
-                "orientation": {
-                    "title": "foxglove.Quaternion",
-                    "type": "object",
-                    "properties": {a: {"type": "number"} for a in "xyzw"},
-                },
-            },
-        },
-    },
-}
 
 
 @dataclass(frozen=True)
@@ -127,7 +97,7 @@ class _PoseEncoder:
 
             data = build_file_descriptor_set(PoseInFrame).SerializeToString()
             return _PoseSchema(POSE_IN_FRAME, "protobuf", data, "protobuf", {})
-        data = json.dumps(POSE_IN_FRAME_JSON_SCHEMA, separators=(",", ":")).encode()
+        data = read_schema(f"json/{POSE_IN_FRAME}.json").encode()
         return _PoseSchema(POSE_IN_FRAME, "jsonschema", data, "json", {})
 
     def encode(self, frame_id: str, stamp_ns: int, position: F64, quaternion: F64) -> bytes:
@@ -213,11 +183,11 @@ class _Copier:
         self.copied = 0
 
     def copy(self, path: Path) -> None:
-        with _reading(path):
+        with reading_errors(path):
             stream = path.open("rb")
         with stream:
             records = StreamReader(stream, validate_crcs=True).records
-            for record in _guarded(path, records):
+            for record in guarded_reads(path, records):
                 self._record(record, path)
         self.write_poses_until(None)
         for schema_id, schema in self.schemas.items():  # schemas no channel used
