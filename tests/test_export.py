@@ -332,6 +332,19 @@ def test_an_output_that_would_replace_the_input_is_refused(
     assert status == 6 and "would replace the input" in err
 
 
+def test_an_output_over_the_sidecars_log_is_refused(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # --poses-from names the log a sidecar annotates: writing over it would destroy the input.
+    log = tmp_path / "drive.mcap"
+    log.write_bytes((SAMPLES / "drive_loops.ros2.mcap").read_bytes())
+    before = log.read_bytes()
+    args = ["--format", "tum", "--odometry-topic", "/odom", "--poses-from", str(log)]
+    status, _, err = export(capsys, str(annotated), *args, "-o", str(log))
+    assert status == 6 and f"would replace the input {log}" in err
+    assert log.read_bytes() == before
+
+
 def _optical_rotation_for_body_yaw(degrees: float) -> list[float]:
     """verification's R (X_match = R X_query + t, optical axes) when the match camera is
     turned `degrees` to the left (about body z = optical -y) of the query camera."""

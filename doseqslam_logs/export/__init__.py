@@ -43,12 +43,13 @@ def export_log(
     """
     if format not in FORMATS:
         raise UsageError(f"unknown export format {format!r} (formats: {', '.join(FORMATS)})")
-    log = Path(log)
+    log, options = Path(log), options or ExportOptions()
     if output is not None:
         check_output_path(output)
-        if Path(output).resolve() == log.resolve():
-            raise OutputError(f"{output}: the output would replace the input")
-    result = FORMATS[format].export(read_annotations(log), options or ExportOptions())
+        for source in (log, options.poses_log):  # a sidecar's log is an input too
+            if source is not None and Path(output).resolve() == Path(source).resolve():
+                raise OutputError(f"{output}: the output would replace the input {source}")
+    result = FORMATS[format].export(read_annotations(log), options)
     if output is None:
         return result
     with atomic_output(Path(output)) as stream:
