@@ -1,0 +1,510 @@
+"""Metric relative pose of a verified loop pair (issue #20): a ladder of fits, best first.
+
+Pure computation: features, a depth image or a neighbouring frame with its odometry, and the
+pair's `Verdict` in; a `MetricPose` out. The rungs, each used when the caller has what it needs:
+
+1. ``depth_pnp``: the match frame's aligned depth image gives 3-D points at its keypoints;
+   PnP-RANSAC of the query's keypoints against them, then Levenberg-Marquardt refinement.
+2. ``odometry_pnp``: the match frame's keypoints are triangulated against a neighbouring frame
+   of the match, with the odometry's relative pose between the two as the baseline (this is
+   where the metric scale comes from); then the same PnP of the query.
+3. ``rotation_only``: the essential fit's rotation (what `Verdict` holds); the translation is
+   unknown and left as None, never a zero.
+
+A metric rung is refused, with a reason, when it has too few PnP inliers (default 25, as
+VINS-Mono), a large residual, a rotation that disagrees with the epipolar fit, or (rung 2) a
+degenerate baseline. `metric_pose` returns the best rung that passed and the reasons of the
+better rungs that were tried and failed.
+
+Frames: as `Verdict`, camera optical frames (x right, y down, z forward) and
+X_match = R X_query + t for a 3-D point X in each camera's frame, so (R, t) is the query
+camera's pose in the match camera's frame. The covariance is over (t_x, t_y, t_z, rot x, rot y,
+rot z), ROS's order: the translation perturbed additively and the rotation as R' = exp(w) R,
+a rotation vector w about the match camera's axes (ROS's "fixed axes" of the parent frame).
+
+Covariance of a metric fit: sigma^2 (J^T J)^-1, J the Jacobian of the PnP inliers' reprojection
+residuals (pixels) with respect to those six parameters, and sigma^2 the a-posteriori variance
+of a pixel coordinate, sum(r^2) / (2n - 6), floored at `MetricPoseParameters.min_pixel_sigma_px`
+(the residuals of RANSAC inliers are truncated at its threshold, so the estimate can come out
+too small on few points). It describes the PnP fit only: the depth noise (rung 1) and the
+odometry's scale error over the baseline (rung 2) are not in it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from .geometry import FrameFeatures, Intrinsics, Verdict, ratio_matches
+from .params import VerificationParameters
+
+F64 = npt.NDArray[np.float64]
+DepthImage = npt.NDArray[np.float32]
+Method = Literal["depth_pnp", "odometry_pnp", "rotation_only"]
+
+_FIT_SEED = 0
+_JACOBIAN_STEP = 1e-6  # metres and radians: central differences of the reprojection
+
+
+@dataclass(frozen=True)
+class MetricPoseParameters:
+    """Checks of the metric rungs; pixel values are in feature-image pixels (as
+    `VerificationParameters.ransac_threshold_px`), scaled to the original frame's pixels."""
+
+    min_inliers: int = 25  # PnP inliers needed (VINS-Mono's loop-closure PnP uses 25)
+    reprojection_threshold_px: float = 2.0  # PnP-RANSAC inlier threshold
+    max_rms_px: float = 1.5  # refined RMS reprojection residual of the inliers
+    max_rotation_disagreement_deg: float = 5.0  # against the essential fit's rotation
+    ransac_iterations: int = 1000
+    confidence: float = 0.999
+    min_baseline_m: float = 0.2  # rung 2: odometry distance between match and neighbour
+    min_parallax_deg: float = 1.0  # rung 2: angle between the two rays of a triangulated point
+    min_pixel_sigma_px: float = 0.3  # floor of the covariance's pixel sigma (original pixels)
+
+    def __post_init__(self) -> None:
+        positive = (
+            self.min_inliers,
+            self.reprojection_threshold_px,
+            self.max_rms_px,
+            self.max_rotation_disagreement_deg,
+            self.ransac_iterations,
+            self.min_baseline_m,
+            self.min_pixel_sigma_px,
+        )
+        if not all(math.isfinite(v) and v > 0 for v in positive) or self.min_inliers < 6:
+            raise ValueError(f"metric pose parameters must be positive (min_inliers >= 6): {self}")
+        if not 0 < self.confidence < 1 or not self.min_parallax_deg >= 0:
+            raise ValueError(f"confidence must be in (0, 1), min_parallax_deg >= 0: {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class MetricPose:
+    """The relative pose of a loop pair: X_match = R X_query + t, camera optical frames.
+
+    `translation` is in metres, None for ``rotation_only`` (the scale is unknown: the
+    covariance's translation variances are then infinite). `covariance` is 6x6 over
+    (t_x, t_y, t_z, rot x, rot y, rot z) as the module says. `inliers` and `rms_px` (original
+    pixels) describe the fit the pose came from: the PnP inliers, or for ``rotation_only`` the
+    essential fit's inliers and their Sampson distances. `reason` says why better rungs that
+    were tried failed ("" when none failed).
+    """
+
+    method: Method
+    rotation_xyzw: tuple[float, float, float, float]
+    translation: tuple[float, float, float] | None
+    covariance: F64
+    inliers: int
+    rms_px: float
+    reason: str = ""
+
+    @property
+    def rotation_deg(self) -> float:
+        return math.degrees(Rotation.from_quat(self.rotation_xyzw).magnitude())
+
+
+@dataclass(frozen=True, eq=False)
+class OdometryNeighbour:
+    """A frame near the match and where the odometry puts it: X_neighbour = R X_match + t,
+    camera optical frames, t in metres (the caller turns the odometry's body poses into this)."""
+
+    features: FrameFeatures
+    rotation_xyzw: tuple[float, float, float, float]
+    translation: tuple[float, float, float]
+
+
+def metric_pose(
+    query: FrameFeatures,
+    match: FrameFeatures,
+    verdict: Verdict,
+    intrinsics: Intrinsics,
+    verification: VerificationParameters,
+    params: MetricPoseParameters | None = None,
+    *,
+    depth: DepthImage | None = None,
+    neighbour: OdometryNeighbour | None = None,
+) -> MetricPose | None:
+    """The best rung for a verified pair: depth PnP when `depth` (the match frame's, float32
+    metres, NaN or <= 0 invalid, the frame's size) is given, else or on failure odometry PnP
+    when `neighbour` is, else or on failure the verdict's rotation. `verification` gives the
+    ratio test (as the pair was verified). None when every rung tried failed and the verdict
+    has no rotation.
+    """
+    params = params or MetricPoseParameters()
+    reasons: list[str] = []
+    if depth is not None:
+        outcome = depth_pnp(query, match, depth, verdict, intrinsics, verification, params)
+        if isinstance(outcome, MetricPose):
+            return outcome
+        reasons.append(f"depth_pnp: {outcome}")
+    if neighbour is not None:
+        outcome = odometry_pnp(query, match, neighbour, verdict, intrinsics, verification, params)
+        if isinstance(outcome, MetricPose):
+            return _with_reasons(outcome, reasons)
+        reasons.append(f"odometry_pnp: {outcome}")
+    fallback = rotation_only(query, match, verdict, intrinsics, verification, params)
+    return None if fallback is None else _with_reasons(fallback, reasons)
+
+
+def _with_reasons(pose: MetricPose, reasons: list[str]) -> MetricPose:
+    if not reasons:
+        return pose
+    return MetricPose(
+        pose.method,
+        pose.rotation_xyzw,
+        pose.translation,
+        pose.covariance,
+        pose.inliers,
+        pose.rms_px,
+        "; ".join(reasons),
+    )
+
+
+# -- rung 1: depth ------------------------------------------------------------------------
+
+
+def depth_pnp(
+    query: FrameFeatures,
+    match: FrameFeatures,
+    depth: DepthImage,
+    verdict: Verdict,
+    intrinsics: Intrinsics,
+    verification: VerificationParameters,
+    params: MetricPoseParameters,
+) -> MetricPose | str:
+    """Rung 1: the match's keypoints back-projected with `depth` (nearest pixel), PnP of the
+    query's. A MetricPose, or why not."""
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be a 2-D image, got shape {depth.shape}")
+    q_index, m_index = ratio_matches(query, match, verification.ratio)
+    pixels = match.keypoints[m_index].astype(np.float64)
+    z = _depth_at(depth, pixels)
+    valid = np.isfinite(z) & (z > 0)
+    if np.count_nonzero(valid) < params.min_inliers:
+        return f"too few matches with depth ({np.count_nonzero(valid)} < {params.min_inliers})"
+    points = _back_project(pixels[valid], z[valid], intrinsics)
+    image = query.keypoints[q_index[valid]].astype(np.float64)
+    scale = min(query.scale, match.scale)
+    return _pnp(points, image, verdict, intrinsics, params, scale, "depth_pnp")
+
+
+def _depth_at(depth: DepthImage, pixels: F64) -> F64:
+    """Depth at each (x, y) pixel centre, nearest pixel; NaN outside the image."""
+    height, width = depth.shape
+    column = np.rint(pixels[:, 0]).astype(np.int64)
+    row = np.rint(pixels[:, 1]).astype(np.int64)
+    inside = (column >= 0) & (column < width) & (row >= 0) & (row < height)
+    z = np.full(len(pixels), np.nan)
+    z[inside] = depth[row[inside], column[inside]]
+    return z
+
+
+def _back_project(pixels: F64, z: F64, intrinsics: Intrinsics) -> F64:
+    x = (pixels[:, 0] - intrinsics.cx) / intrinsics.fx * z
+    y = (pixels[:, 1] - intrinsics.cy) / intrinsics.fy * z
+    return np.column_stack([x, y, z])
+
+
+# -- rung 2: odometry baseline ------------------------------------------------------------
+
+
+def odometry_pnp(
+    query: FrameFeatures,
+    match: FrameFeatures,
+    neighbour: OdometryNeighbour,
+    verdict: Verdict,
+    intrinsics: Intrinsics,
+    verification: VerificationParameters,
+    params: MetricPoseParameters,
+) -> MetricPose | str:
+    """Rung 2: the match's keypoints triangulated against the neighbour's (the odometry's
+    relative pose as the baseline), PnP of the query's. A MetricPose, or why not."""
+    baseline = float(np.linalg.norm(neighbour.translation))
+    if baseline < params.min_baseline_m:
+        return f"degenerate baseline ({baseline:.2f} m < {params.min_baseline_m:g} m)"
+    scale = min(query.scale, match.scale, neighbour.features.scale)
+    triangulated = _triangulate(match, neighbour, intrinsics, verification, params, scale)
+    if isinstance(triangulated, str):
+        return triangulated
+    m_with_point, points_by_feature = triangulated
+    q_index, m_index = ratio_matches(query, match, verification.ratio)
+    keep = m_with_point[m_index]
+    if np.count_nonzero(keep) < params.min_inliers:
+        return (
+            f"too few query matches on triangulated points "
+            f"({np.count_nonzero(keep)} < {params.min_inliers})"
+        )
+    points = points_by_feature[m_index[keep]]
+    image = query.keypoints[q_index[keep]].astype(np.float64)
+    return _pnp(points, image, verdict, intrinsics, params, scale, "odometry_pnp")
+
+
+def _triangulate(
+    match: FrameFeatures,
+    neighbour: OdometryNeighbour,
+    intrinsics: Intrinsics,
+    verification: VerificationParameters,
+    params: MetricPoseParameters,
+    scale: float,
+) -> tuple[npt.NDArray[np.bool_], F64] | str:
+    """Per match feature: whether it has a good 3-D point (match camera frame) and the point.
+
+    Good: in front of both cameras, reprojected within the PnP threshold in both views, and
+    seen under at least `min_parallax_deg` (nearly parallel rays fix no depth).
+    """
+    m_index, n_index = ratio_matches(match, neighbour.features, verification.ratio)
+    if m_index.size < params.min_inliers:
+        return f"too few neighbour matches ({m_index.size} < {params.min_inliers})"
+    k = intrinsics.matrix()
+    rotation = Rotation.from_quat(neighbour.rotation_xyzw).as_matrix()
+    translation = np.asarray(neighbour.translation, np.float64)
+    p_match = match.keypoints[m_index].astype(np.float64)
+    p_neighbour = neighbour.features.keypoints[n_index].astype(np.float64)
+    projection_m = k @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    projection_n = k @ np.hstack([rotation, translation[:, None]])
+    homogeneous = cv2.triangulatePoints(projection_m, projection_n, p_match.T, p_neighbour.T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        points = (homogeneous[:3] / homogeneous[3]).T
+    in_neighbour = points @ rotation.T + translation
+    threshold = params.reprojection_threshold_px / scale
+    error_m = np.linalg.norm(_project(points, k) - p_match, axis=1)
+    error_n = np.linalg.norm(_project(in_neighbour, k) - p_neighbour, axis=1)
+    good = (
+        np.isfinite(points).all(axis=1)
+        & (points[:, 2] > 0)
+        & (in_neighbour[:, 2] > 0)
+        & (error_m <= threshold)
+        & (error_n <= threshold)
+    )
+    centre_n = -rotation.T @ translation  # the neighbour camera's centre in the match frame
+    parallax = _ray_angle_deg(points, points - centre_n)
+    wide = good & (parallax >= params.min_parallax_deg)
+    if np.count_nonzero(wide) < params.min_inliers:
+        if np.count_nonzero(good) >= params.min_inliers:
+            return (
+                f"parallax too small ({np.count_nonzero(wide)} of {np.count_nonzero(good)} "
+                f"points over {params.min_parallax_deg:g} deg)"
+            )
+        return f"too few triangulated points ({np.count_nonzero(good)} < {params.min_inliers})"
+    has_point = np.zeros(match.count, bool)
+    has_point[m_index[wide]] = True
+    by_feature = np.zeros((match.count, 3))
+    by_feature[m_index[wide]] = points[wide]
+    return has_point, by_feature
+
+
+def _ray_angle_deg(a: F64, b: F64) -> F64:
+    cosine = np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+    angle: F64 = np.degrees(np.arccos(np.clip(np.nan_to_num(cosine, nan=1.0), -1.0, 1.0)))
+    return angle
+
+
+# -- PnP and its checks -------------------------------------------------------------------
+
+
+def _pnp(
+    points: F64,
+    image: F64,
+    verdict: Verdict,
+    intrinsics: Intrinsics,
+    params: MetricPoseParameters,
+    scale: float,
+    method: Method,
+) -> MetricPose | str:
+    """PnP-RANSAC of `image` (query pixels) against `points` (match camera frame), LM
+    refinement on the inliers, the checks, the covariance."""
+    k = intrinsics.matrix()
+    threshold = params.reprojection_threshold_px / scale
+    cv2.setRNGSeed(_FIT_SEED)
+    try:
+        found, rvec, tvec, inliers = cv2.solvePnPRansac(
+            points,
+            image,
+            k,
+            None,
+            iterationsCount=params.ransac_iterations,
+            reprojectionError=threshold,
+            confidence=params.confidence,
+        )
+    except cv2.error:
+        found, inliers = False, None
+    count = 0 if inliers is None else len(inliers)
+    if not found or count < params.min_inliers:
+        return f"too few PnP inliers ({count} < {params.min_inliers})"
+    chosen = np.asarray(inliers).ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(points[chosen], image[chosen], k, None, rvec, tvec)
+    # RANSAC judged the inliers by a minimal-sample model: judge them again by the refined one.
+    projected = cv2.projectPoints(points, rvec, tvec, k, None)[0].reshape(-1, 2)
+    again = np.flatnonzero(np.linalg.norm(projected - image, axis=1) <= threshold)
+    if again.size >= params.min_inliers and not np.array_equal(again, chosen):
+        chosen = again
+        rvec, tvec = cv2.solvePnPRefineLM(points[chosen], image[chosen], k, None, rvec, tvec)
+    # PnP gives the match frame in the query camera: X_query = R_pnp X_match + t_pnp.
+    r_pnp = cv2.Rodrigues(rvec)[0]
+    rotation = r_pnp.T
+    translation = -r_pnp.T @ tvec.ravel()
+    residuals = _residuals(points[chosen], image[chosen], rotation, translation, k)
+    rms = float(np.sqrt(np.mean(np.square(residuals))))
+    if rms > params.max_rms_px / scale:
+        return f"residual too large ({rms:.2f} px > {params.max_rms_px / scale:.2f} px)"
+    disagreement = _rotation_disagreement_deg(rotation, verdict)
+    if disagreement is not None and disagreement > params.max_rotation_disagreement_deg:
+        return (
+            f"disagrees with the epipolar fit (rotation {disagreement:.1f} deg apart > "
+            f"{params.max_rotation_disagreement_deg:g} deg)"
+        )
+    covariance = _pnp_covariance(points[chosen], image[chosen], rotation, translation, k, params)
+    return MetricPose(
+        method=method,
+        rotation_xyzw=_quaternion(rotation),
+        translation=(float(translation[0]), float(translation[1]), float(translation[2])),
+        covariance=covariance,
+        inliers=int(chosen.size),
+        rms_px=rms,
+    )
+
+
+def _project(points: F64, k: F64) -> F64:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = points @ k.T
+        pixels: F64 = uv[:, :2] / uv[:, 2:3]
+    return pixels
+
+
+def _residuals(points: F64, image: F64, rotation: F64, translation: F64, k: F64) -> F64:
+    """Reprojection residuals (2n,) of match-frame points in the query camera, for the pose
+    X_match = R X_query + t."""
+    in_query = (points - translation) @ rotation  # R^T (X - t), row-wise
+    return (_project(in_query, k) - image).ravel()
+
+
+def _pnp_covariance(
+    points: F64, image: F64, rotation: F64, translation: F64, k: F64, params: MetricPoseParameters
+) -> F64:
+    """sigma^2 (J^T J)^-1 over (t, w) with R' = exp(w) R (the module's convention)."""
+
+    def residuals_at(delta: F64) -> F64:
+        perturbed = Rotation.from_rotvec(delta[3:]).as_matrix() @ rotation
+        return _residuals(points, image, perturbed, translation + delta[:3], k)
+
+    jacobian = _numeric_jacobian(residuals_at, 6)
+    residuals = residuals_at(np.zeros(6))
+    dof = max(residuals.size - 6, 1)
+    variance = max(float(residuals @ residuals) / dof, params.min_pixel_sigma_px**2)
+    return _symmetric_inverse(jacobian.T @ jacobian) * variance
+
+
+def _numeric_jacobian(function: Callable[[F64], F64], size: int) -> F64:
+    """Central differences of a function of a `size` vector at zero."""
+    columns = []
+    for i in range(size):
+        step = np.zeros(size)
+        step[i] = _JACOBIAN_STEP
+        columns.append((function(step) - function(-step)) / (2 * _JACOBIAN_STEP))
+    return np.column_stack(columns)
+
+
+def _symmetric_inverse(matrix: F64) -> F64:
+    inverse = np.linalg.pinv(matrix)
+    return np.asarray((inverse + inverse.T) / 2, np.float64)
+
+
+def _rotation_disagreement_deg(rotation: F64, verdict: Verdict) -> float | None:
+    if verdict.rotation_xyzw is None:
+        return None
+    epipolar = Rotation.from_quat(verdict.rotation_xyzw)
+    return math.degrees((Rotation.from_matrix(rotation) * epipolar.inv()).magnitude())
+
+
+def _quaternion(rotation: F64) -> tuple[float, float, float, float]:
+    q = Rotation.from_matrix(rotation).as_quat()
+    q = -q if q[3] < 0 else q
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+# -- rung 3: rotation only ----------------------------------------------------------------
+
+
+def rotation_only(
+    query: FrameFeatures,
+    match: FrameFeatures,
+    verdict: Verdict,
+    intrinsics: Intrinsics,
+    verification: VerificationParameters,
+    params: MetricPoseParameters,
+) -> MetricPose | None:
+    """Rung 3: the essential fit's rotation; None when the verdict has none.
+
+    Its covariance: the translation variances infinite (unknown scale), the rotation block
+    sigma^2 (J^T J)^-1 of the Sampson distances of the ratio matches within the verification's
+    threshold of the verdict's E = [t]x R, over the rotation and the two angles of t's
+    direction (the 3x3 rotation marginal); sigma floored as for PnP.
+    """
+    if verdict.rotation_xyzw is None or verdict.translation_direction is None:
+        return None
+    rotation = Rotation.from_quat(verdict.rotation_xyzw).as_matrix()
+    direction = np.asarray(verdict.translation_direction, np.float64)
+    q_index, m_index = ratio_matches(query, match, verification.ratio)
+    k_inv = np.asarray(np.linalg.inv(intrinsics.matrix()), np.float64)
+    rays_q = _rays(query.keypoints[q_index], k_inv)
+    rays_m = _rays(match.keypoints[m_index], k_inv)
+    # Sampson distances in normalized coordinates, times f for pixels.
+    focal = (intrinsics.fx + intrinsics.fy) / 2
+    threshold = verification.ransac_threshold_px / min(query.scale, match.scale)
+    distances = _sampson(rays_q, rays_m, rotation, direction) * focal
+    inlier = np.abs(distances) <= threshold
+    covariance = np.full((6, 6), 0.0)
+    covariance[:3, :3] = np.diag([math.inf] * 3)
+    count = int(np.count_nonzero(inlier))
+    rms = float(np.sqrt(np.mean(np.square(distances[inlier])))) if count else math.nan
+    if count > 5:
+        covariance[3:, 3:] = _rotation_covariance(
+            rays_q[inlier], rays_m[inlier], rotation, direction, focal, params.min_pixel_sigma_px
+        )
+    else:
+        covariance[3:, 3:] = np.diag([math.inf] * 3)
+    return MetricPose("rotation_only", _quaternion(rotation), None, covariance, count, rms)
+
+
+def _rays(pixels: npt.NDArray[np.float32], k_inv: F64) -> F64:
+    homogeneous = np.column_stack([pixels.astype(np.float64), np.ones(len(pixels))])
+    rays: F64 = homogeneous @ k_inv.T
+    return rays
+
+
+def _sampson(rays_q: F64, rays_m: F64, rotation: F64, direction: F64) -> F64:
+    """Signed Sampson distance (normalized units) of each correspondence to E = [t]x R."""
+    essential = _skew(direction) @ rotation
+    e_q = rays_q @ essential.T  # E x_q: the epipolar line in the match image
+    e_t_m = rays_m @ essential  # E^T x_m
+    numerator = np.sum(rays_m * e_q, axis=1)
+    denominator = np.sqrt(e_q[:, 0] ** 2 + e_q[:, 1] ** 2 + e_t_m[:, 0] ** 2 + e_t_m[:, 1] ** 2)
+    distances: F64 = numerator / np.maximum(denominator, 1e-12)
+    return distances
+
+
+def _skew(v: F64) -> F64:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], np.float64)
+
+
+def _rotation_covariance(
+    rays_q: F64, rays_m: F64, rotation: F64, direction: F64, focal: float, min_sigma: float
+) -> F64:
+    """Rotation block of sigma^2 (J^T J)^-1 over (w, two tangent angles of t's direction)."""
+    tangent = np.linalg.svd(direction[None, :])[2][1:]  # two unit vectors orthogonal to t
+
+    def distances_at(delta: F64) -> F64:
+        perturbed = Rotation.from_rotvec(delta[:3]).as_matrix() @ rotation
+        moved = direction + tangent.T @ delta[3:]
+        return _sampson(rays_q, rays_m, perturbed, moved / np.linalg.norm(moved)) * focal
+
+    jacobian = _numeric_jacobian(distances_at, 5)
+    distances = distances_at(np.zeros(5))
+    variance = float(distances @ distances) / max(distances.size - 5, 1)
+    return _symmetric_inverse(jacobian.T @ jacobian)[:3, :3] * max(variance, min_sigma**2)
