@@ -1,0 +1,293 @@
+#!/usr/bin/env python3
+"""Measure the metric loop edges (issue #20) against ground truth on real drives.
+
+For each input log: `annotate` it with the command's defaults (into --scratch, reused when
+already there), read the accepted loop closures back, re-read each pair's query, refined match
+and a neighbour of the match from the log, and fit `verification.metric_pose` with the
+odometry rung (the neighbour's pose from /odom) and the rotation-only rung (rung 1 needs a
+depth topic, which the samples lack). The result is compared with the true relative pose from
+/ground_truth/pose; the placeholder edge of `export --format g2o` (zero translation) is shown
+for comparison (its translation error is the true distance between the two cameras).
+
+Frames: both pose topics are body poses (x forward, y left, z up) of the camera itself
+(tools/make_sample_logs.py: the true camera pose at 1.6 m; the odometry integrates the same
+planar motion from the start pose); the camera's optical axes are turned into body axes by
+`export.pose_graph.OPTICAL_TO_BODY`, so T_world_camera = T_world_body * (OPTICAL_TO_BODY, 0).
+
+    PYTHONPATH=$PWD python tools/metric_edges.py                 # the three committed samples
+    PYTHONPATH=$PWD python tools/metric_edges.py LOG ... --scratch /tmp/x --verbose
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
+from doseqslam_logs.annotations.records import LoopClosureRecord
+from doseqslam_logs.cli.main import main as cli_main
+from doseqslam_logs.export.pose_graph import OPTICAL_TO_BODY
+from doseqslam_logs.pipeline.reread import LogFrameReader
+from doseqslam_logs.sources.camera_info import read_camera_info
+from doseqslam_logs.sources.poses import PoseTrack, read_poses
+from doseqslam_logs.verification import (
+    DEFAULT_VERIFICATION,
+    FrameFeatures,
+    Intrinsics,
+    Verdict,
+    VerificationParameters,
+    extract_features,
+)
+from doseqslam_logs.verification.metric_pose import (
+    MetricPose,
+    MetricPoseParameters,
+    OdometryNeighbour,
+    metric_pose,
+)
+
+F64 = npt.NDArray[np.float64]
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLES = [
+    ROOT / "sample_logs" / "drive_loops.ros2.mcap",
+    ROOT / "sample_logs" / "drive_parked.ros2.mcap",
+    ROOT / "sample_logs" / "drive_varrate.bag",
+]
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """T_world_camera, optical axes: X_world = rotation X_camera + position."""
+
+    rotation: Rotation
+    position: F64
+
+    def relative_to(self, other: CameraPose) -> tuple[Rotation, F64]:
+        """(R, t) with X_other = R X_self + t (the metric pose's convention, self = query)."""
+        rotation = other.rotation.inv() * self.rotation
+        translation = other.rotation.inv().apply(self.position - other.position)
+        return rotation, np.asarray(translation, np.float64)
+
+
+@dataclass(frozen=True)
+class PairResult:
+    query: int
+    match: int
+    neighbour: int
+    pose: MetricPose
+    translation_error_m: float  # NaN for rotation_only
+    rotation_error_deg: float
+    placeholder_error_m: float  # |t_true|: the error of a zero-translation edge
+    epipolar_rotation_error_deg: float
+
+
+def camera_poses(track: PoseTrack) -> list[CameraPose]:
+    optical = Rotation.from_matrix(OPTICAL_TO_BODY)
+    return [
+        CameraPose(Rotation.from_quat(q) * optical, np.asarray(p, np.float64))
+        for p, q in zip(track.positions, track.quaternions_xyzw, strict=True)
+    ]
+
+
+def annotated(log: Path, scratch: Path) -> Path:
+    out = scratch / f"{log.name.split('.')[0]}.annotated.mcap"
+    if not out.exists() and cli_main(["annotate", str(log), "-o", str(out)]) != 0:
+        raise RuntimeError(f"annotate {log} failed")
+    return out
+
+
+def verdict_of(record: LoopClosureRecord) -> Verdict:
+    q, d = record.rotation_xyzw, record.translation_direction
+    return Verdict(
+        accepted=True,
+        inliers=record.inliers,
+        matches_tested=record.tentative_matches,
+        model="E",
+        reason=record.rejection_reason or "accepted",
+        rotation_xyzw=(q[0], q[1], q[2], q[3]) if record.has_relative_pose else None,
+        rotation_deg=record.rotation_deg if record.has_relative_pose else None,
+        translation_direction=(d[0], d[1], d[2]) if record.has_relative_pose else None,
+    )
+
+
+def choose_neighbour(match: int, odometry: list[CameraPose], baseline_m: float, reach: int) -> int:
+    """The frame nearest `match` (ties: the later) whose odometry is at least `baseline_m`
+    away; else the farthest within `reach` frames (a parked camera: its baseline is refused)."""
+    candidates = [
+        i
+        for offset in range(1, reach + 1)
+        for i in (match + offset, match - offset)
+        if 0 <= i < len(odometry)
+    ]
+
+    def distance(i: int) -> float:
+        return float(np.linalg.norm(odometry[i].position - odometry[match].position))
+
+    far_enough = [i for i in candidates if distance(i) >= baseline_m]
+    return far_enough[0] if far_enough else max(candidates, key=distance)
+
+
+def measure_log(
+    log: Path,
+    scratch: Path,
+    params: MetricPoseParameters,
+    baseline_m: float,
+    reach: int,
+    features_changes: dict[str, object],
+) -> list[PairResult]:
+    annotations = read_annotations(annotated(log, scratch))
+    metadata = annotations.metadata
+    verification = dataclasses.replace(_verification_parameters(annotations), **features_changes)
+    info = read_camera_info(log, metadata.image_topic)
+    if info is None or annotations.frame_times is None:
+        raise RuntimeError(f"{log}: no camera info or no frame times")
+    intrinsics = Intrinsics(info.fx, info.fy, info.cx, info.cy)
+    times = annotations.detector_times_ns()
+    assert times is not None
+    odometry = camera_poses(read_poses(log, "/odom").interpolate(times))
+    truth = camera_poses(read_poses(log, "/ground_truth/pose").interpolate(times))
+    results = []
+    with LogFrameReader(log, metadata.image_topic, annotations.frame_times) as frames:
+        features: dict[int, FrameFeatures] = {}
+
+        def features_of(*indices: int) -> list[FrameFeatures]:
+            wanted = [i for i in indices if i not in features]
+            for index, gray in frames(wanted):
+                features[index] = extract_features(gray, verification)
+            return [features[i] for i in indices]
+
+        for record in annotations.reported_loop_closures:
+            q, m = record.query.index, record.matched.index
+            n = choose_neighbour(m, odometry, baseline_m, reach)
+            query, match, near = features_of(q, m, n)
+            rotation, translation = odometry[m].relative_to(odometry[n])
+            quaternion = rotation.as_quat()
+            neighbour = OdometryNeighbour(
+                near,
+                (quaternion[0], quaternion[1], quaternion[2], quaternion[3]),
+                (translation[0], translation[1], translation[2]),
+            )
+            verdict = verdict_of(record)
+            pose = metric_pose(
+                query, match, verdict, intrinsics, verification, params, neighbour=neighbour
+            )
+            if pose is None:
+                continue
+            results.append(_compare(q, m, n, pose, verdict, truth[q].relative_to(truth[m])))
+    return results
+
+
+def _verification_parameters(annotations: AnnotatedLog) -> VerificationParameters:
+    recorded = annotations.metadata.verification_parameters_json
+    if not recorded:
+        return DEFAULT_VERIFICATION
+    return VerificationParameters.from_dict(json.loads(recorded))
+
+
+def _compare(
+    q: int, m: int, n: int, pose: MetricPose, verdict: Verdict, true: tuple[Rotation, F64]
+) -> PairResult:
+    true_rotation, true_translation = true
+    rotation_error = _angle_deg(Rotation.from_quat(pose.rotation_xyzw) * true_rotation.inv())
+    epipolar = math.nan
+    if verdict.rotation_xyzw is not None:
+        epipolar = _angle_deg(Rotation.from_quat(verdict.rotation_xyzw) * true_rotation.inv())
+    translation_error = math.nan
+    if pose.translation is not None:
+        translation_error = float(np.linalg.norm(np.asarray(pose.translation) - true_translation))
+    return PairResult(
+        q,
+        m,
+        n,
+        pose,
+        translation_error,
+        rotation_error,
+        float(np.linalg.norm(true_translation)),
+        epipolar,
+    )
+
+
+def _angle_deg(rotation: Rotation) -> float:
+    return math.degrees(rotation.magnitude())
+
+
+def _stats(values: Sequence[float]) -> str:
+    finite = np.asarray([v for v in values if math.isfinite(v)])
+    if finite.size == 0:
+        return "-"
+    return f"{np.median(finite):.3f} / {np.percentile(finite, 95):.3f}"
+
+
+def table_rows(name: str, results: list[PairResult]) -> str:
+    methods = Counter(r.pose.method for r in results)
+    metric = [r for r in results if r.pose.translation is not None]
+    return (
+        f"| {name} | {len(results)} | {methods['odometry_pnp']} | {methods['rotation_only']} | "
+        f"{_stats([r.translation_error_m for r in metric])} | "
+        f"{_stats([r.rotation_error_deg for r in metric])} | "
+        f"{_stats([r.epipolar_rotation_error_deg for r in results])} | "
+        f"{_stats([r.placeholder_error_m for r in results])} |"
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("logs", nargs="*", type=Path, default=SAMPLES)
+    parser.add_argument("--scratch", type=Path, default=Path("/tmp/metric-pose"))
+    parser.add_argument("--baseline", type=float, default=1.0, help="neighbour baseline, m")
+    parser.add_argument("--reach", type=int, default=8, help="neighbour within +-frames")
+    parser.add_argument("--detector", help="features for the metric fit (default: the run's)")
+    parser.add_argument("--max-features", type=int, help="(default: the run's)")
+    parser.add_argument("--verbose", action="store_true", help="one line per pair")
+    args = parser.parse_args(argv)
+    args.scratch.mkdir(parents=True, exist_ok=True)
+    params = MetricPoseParameters()
+    changes: dict[str, object] = {}
+    if args.detector:
+        changes["feature_detector"] = args.detector
+    if args.max_features:
+        changes["max_features"] = args.max_features
+    everything: list[PairResult] = []
+    rows = []
+    for log in args.logs:
+        results = measure_log(log, args.scratch, params, args.baseline, args.reach, changes)
+        everything += results
+        rows.append(table_rows(log.name, results))
+        if args.verbose:
+            for r in results:
+                print(
+                    f"{log.name} q{r.query} m{r.match} n{r.neighbour} {r.pose.method}"
+                    f" inliers {r.pose.inliers} rms {r.pose.rms_px:.2f} px"
+                    f" t_err {r.translation_error_m:.3f} m r_err {r.rotation_error_deg:.2f} deg"
+                    f" |t_true| {r.placeholder_error_m:.2f} m {r.pose.reason}",
+                    file=sys.stderr,
+                )
+    print(
+        "| drive | pairs | odometry_pnp | rotation_only | translation error, m (median / p95)"
+        " | rotation error, deg (median / p95) | epipolar rotation error, deg (all pairs)"
+        " | placeholder translation error, m |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for row in rows:
+        print(row)
+    print(table_rows("all", everything))
+    reasons = Counter(
+        reason.split(" (")[0] for r in everything for reason in r.pose.reason.split("; ") if reason
+    )
+    for reason, count in reasons.most_common():
+        print(f"fallback: {reason}: {count}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
