@@ -53,7 +53,7 @@ class Scene:
     query: FrameFeatures
     match: FrameFeatures
     depth: npt.NDArray[np.float32]
-    neighbour: OdometryNeighbour | None
+    neighbours: list[OdometryNeighbour]
     truth: Pose
 
 
@@ -82,7 +82,7 @@ def make_scene(
     truth: Pose,
     points: int = 150,
     outliers: float = 0.0,
-    odometry: Pose | None = None,
+    odometry: tuple[Pose, ...] = (),
     depth_range: tuple[float, float] = (4.0, 15.0),
     seed: int = 0,
 ) -> Scene:
@@ -96,9 +96,8 @@ def make_scene(
     )
     in_match = truth.apply(in_query)
     seen = _visible(in_query) & _visible(in_match)
-    in_neighbour = None
-    if odometry is not None:
-        in_neighbour = odometry.apply(in_match)
+    in_neighbours = [pose.apply(in_match) for pose in odometry]
+    for in_neighbour in in_neighbours:
         seen &= _visible(in_neighbour)
     chosen = np.flatnonzero(seen)[:points]
     assert chosen.size == points, "scene too small for the points wanted"
@@ -114,16 +113,16 @@ def make_scene(
     depth[np.rint(match_px[:, 1]).astype(int), np.rint(match_px[:, 0]).astype(int)] = in_match[
         chosen, 2
     ]
-    neighbour = None
-    if odometry is not None and in_neighbour is not None:
-        quaternion = odometry.rotation.as_quat()
-        neighbour = OdometryNeighbour(
+    neighbours = [
+        OdometryNeighbour(
             _features(noisy(in_neighbour), descriptors),
-            (quaternion[0], quaternion[1], quaternion[2], quaternion[3]),
-            (odometry.translation[0], odometry.translation[1], odometry.translation[2]),
+            tuple(pose.rotation.as_quat()),  # type: ignore[arg-type]
+            tuple(pose.translation),  # type: ignore[arg-type]
         )
+        for pose, in_neighbour in zip(odometry, in_neighbours, strict=True)
+    ]
     return Scene(
-        _features(query_px, descriptors), _features(match_px, descriptors), depth, neighbour, truth
+        _features(query_px, descriptors), _features(match_px, descriptors), depth, neighbours, truth
     )
 
 
@@ -161,7 +160,7 @@ def run(scene: Scene, *, depth: bool, odometry: bool, off_deg: float = 0.0) -> M
         DEFAULT_VERIFICATION,
         P,
         depth=scene.depth if depth else None,
-        neighbour=scene.neighbour if odometry else None,
+        neighbours=scene.neighbours if odometry else [],
     )
 
 
@@ -230,7 +229,7 @@ def test_a_fit_that_disagrees_with_the_epipolar_rotation_is_refused() -> None:
 @given(yaw=st.floats(-8, 8), x=st.floats(-1.5, 1.5), seed=st.integers(0, 2**16))
 def test_odometry_pnp_recovers_random_poses(yaw: float, x: float, seed: int) -> None:
     truth = _pose(yaw, (x, 0.1, 1.0))
-    pose = run(make_scene(truth, odometry=FORWARD_1M, seed=seed), depth=False, odometry=True)
+    pose = run(make_scene(truth, odometry=(FORWARD_1M,), seed=seed), depth=False, odometry=True)
     assert pose is not None and pose.method == "odometry_pnp" and pose.reason == ""
     translation_error, rotation_error = errors(pose, truth)
     assert translation_error < ODOMETRY_TRANSLATION_TOL_M
@@ -238,16 +237,16 @@ def test_odometry_pnp_recovers_random_poses(yaw: float, x: float, seed: int) -> 
 
 
 def test_odometry_pnp_takes_its_scale_from_the_baseline() -> None:
-    scene = make_scene(LOOP, odometry=FORWARD_1M)
-    assert scene.neighbour is not None
-    x, y, z = scene.neighbour.translation
+    scene = make_scene(LOOP, odometry=(FORWARD_1M,))
+    (neighbour,) = scene.neighbours
+    x, y, z = neighbour.translation
     longer = OdometryNeighbour(
-        scene.neighbour.features,
-        scene.neighbour.rotation_xyzw,
+        neighbour.features,
+        neighbour.rotation_xyzw,
         (1.2 * x, 1.2 * y, 1.2 * z),
     )
     pose = run(scene, depth=False, odometry=True)
-    scene.neighbour = longer
+    scene.neighbours = [longer]
     scaled = run(scene, depth=False, odometry=True)
     assert pose is not None and scaled is not None and pose.translation and scaled.translation
     ratio = np.linalg.norm(scaled.translation) / np.linalg.norm(pose.translation)
@@ -255,7 +254,7 @@ def test_odometry_pnp_takes_its_scale_from_the_baseline() -> None:
 
 
 def test_a_short_baseline_falls_back_to_rotation_only_with_the_reason() -> None:
-    scene = make_scene(LOOP, odometry=_pose(0.0, (0.0, 0.0, -0.05)))
+    scene = make_scene(LOOP, odometry=(_pose(0.0, (0.0, 0.0, -0.05)),))
     pose = run(scene, depth=False, odometry=True)
     assert pose is not None and pose.method == "rotation_only" and pose.translation is None
     assert pose.reason == "odometry_pnp: degenerate baseline (0.05 m < 0.2 m)"
@@ -264,19 +263,49 @@ def test_a_short_baseline_falls_back_to_rotation_only_with_the_reason() -> None:
 
 def test_too_little_parallax_falls_back() -> None:
     # Points 200-400 m away seen from 0.5 m apart: rays within a fraction of a degree.
-    scene = make_scene(LOOP, odometry=_pose(0.0, (0.0, 0.0, -0.5)), depth_range=(200, 400))
+    scene = make_scene(LOOP, odometry=(_pose(0.0, (0.0, 0.0, -0.5)),), depth_range=(200, 400))
     pose = run(scene, depth=False, odometry=True)
     assert pose is not None and pose.method == "rotation_only"
     assert pose.reason.startswith("odometry_pnp: parallax too small (0 of ")
 
 
+def test_neighbours_on_both_sides_add_up_and_a_degenerate_one_is_skipped() -> None:
+    backward = _pose(0.0, (0.0, 0.0, 1.0))
+    scene = make_scene(LOOP, odometry=(FORWARD_1M, backward, _pose(0.0, (0.0, 0.0, -0.05))))
+    ahead, behind, parked = scene.neighbours
+    # Each of the two real neighbours sees 20 of the 150 points again (the others' descriptors
+    # changed), fewer than the 25 needed; together they see 40.
+    rng = np.random.default_rng(7)
+
+    def seeing_only(neighbour: OdometryNeighbour, seen: slice) -> OdometryNeighbour:
+        features = neighbour.features
+        descriptors = rng.integers(0, 256, features.descriptors.shape, dtype=np.uint8)
+        descriptors[seen] = features.descriptors[seen]
+        changed = FrameFeatures(features.keypoints, descriptors, "orb", 1.0)
+        return OdometryNeighbour(changed, neighbour.rotation_xyzw, neighbour.translation)
+
+    ahead, behind = seeing_only(ahead, slice(0, 20)), seeing_only(behind, slice(20, 40))
+    for alone in ([ahead], [behind]):
+        scene.neighbours = alone
+        pose = run(scene, depth=False, odometry=True)
+        assert pose is not None and pose.method == "rotation_only"
+        assert pose.reason.startswith("odometry_pnp: too few triangulated points (")
+    scene.neighbours = [ahead, behind, parked]
+    pose = run(scene, depth=False, odometry=True)
+    assert pose is not None and pose.method == "odometry_pnp"
+    assert pose.inliers > 20  # more points than either neighbour alone can give
+    translation_error, rotation_error = errors(pose, LOOP)
+    assert translation_error < ODOMETRY_TRANSLATION_TOL_M
+    assert rotation_error < ODOMETRY_ROTATION_TOL_DEG
+
+
 def test_the_ladder_says_why_depth_failed_when_odometry_succeeds() -> None:
-    scene = make_scene(LOOP, odometry=FORWARD_1M)
+    scene = make_scene(LOOP, odometry=(FORWARD_1M,))
     scene.depth[:] = 0.0  # an all-invalid depth image
     pose = run(scene, depth=True, odometry=True)
     assert pose is not None and pose.method == "odometry_pnp"
     assert pose.reason == "depth_pnp: too few matches with depth (0 < 25)"
-    both = run(make_scene(LOOP, odometry=FORWARD_1M), depth=True, odometry=True)
+    both = run(make_scene(LOOP, odometry=(FORWARD_1M,)), depth=True, odometry=True)
     assert both is not None and both.method == "depth_pnp"  # the better rung first
 
 
@@ -305,7 +334,7 @@ def test_covariance_is_symmetric_positive_definite_and_shrinks_with_more_points(
     use_depth: bool,
 ) -> None:
     def covariance(points: int) -> F64:
-        scene = make_scene(LOOP, points=points, odometry=FORWARD_1M)
+        scene = make_scene(LOOP, points=points, odometry=(FORWARD_1M,))
         pose = run(scene, depth=use_depth, odometry=not use_depth)
         assert pose is not None and pose.method == ("depth_pnp" if use_depth else "odometry_pnp")
         return pose.covariance

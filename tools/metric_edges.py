@@ -29,6 +29,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -83,7 +84,7 @@ class CameraPose:
 class PairResult:
     query: int
     match: int
-    neighbour: int
+    neighbours: list[int]
     pose: MetricPose
     translation_error_m: float  # NaN for rotation_only
     rotation_error_deg: float
@@ -120,30 +121,37 @@ def verdict_of(record: LoopClosureRecord) -> Verdict:
     )
 
 
-def choose_neighbour(match: int, odometry: list[CameraPose], baseline_m: float, reach: int) -> int:
-    """The frame nearest `match` (ties: the later) whose odometry is at least `baseline_m`
-    away; else the farthest within `reach` frames (a parked camera: its baseline is refused)."""
-    candidates = [
-        i
-        for offset in range(1, reach + 1)
-        for i in (match + offset, match - offset)
-        if 0 <= i < len(odometry)
-    ]
+def choose_neighbours(
+    match: int, odometry: list[CameraPose], baselines_m: Sequence[float], reach: int
+) -> list[int]:
+    """On each side of `match`, the nearest frame whose odometry is at least each of
+    `baselines_m` away (within `reach` frames); when there is none at all, the farthest frame
+    within reach (a parked camera: the core refuses its baseline)."""
 
     def distance(i: int) -> float:
         return float(np.linalg.norm(odometry[i].position - odometry[match].position))
 
-    far_enough = [i for i in candidates if distance(i) >= baseline_m]
-    return far_enough[0] if far_enough else max(candidates, key=distance)
+    chosen: list[int] = []
+    for side in (1, -1):
+        frames = [match + side * o for o in range(1, reach + 1)]
+        frames = [i for i in frames if 0 <= i < len(odometry)]
+        for baseline in baselines_m:
+            far = next((i for i in frames if distance(i) >= baseline), None)
+            if far is not None and far not in chosen:
+                chosen.append(far)
+    if chosen:
+        return chosen
+    around = [i for o in range(1, reach + 1) for i in (match + o, match - o)]
+    return [max((i for i in around if 0 <= i < len(odometry)), key=distance)]
 
 
 def measure_log(
     log: Path,
     scratch: Path,
     params: MetricPoseParameters,
-    baseline_m: float,
+    baselines_m: Sequence[float],
     reach: int,
-    features_changes: dict[str, object],
+    features_changes: dict[str, Any],
 ) -> list[PairResult]:
     annotations = read_annotations(annotated(log, scratch))
     metadata = annotations.metadata
@@ -158,32 +166,36 @@ def measure_log(
     truth = camera_poses(read_poses(log, "/ground_truth/pose").interpolate(times))
     results = []
     with LogFrameReader(log, metadata.image_topic, annotations.frame_times) as frames:
-        features: dict[int, FrameFeatures] = {}
+        cache: dict[int, FrameFeatures] = {}
 
         def features_of(*indices: int) -> list[FrameFeatures]:
-            wanted = [i for i in indices if i not in features]
+            wanted = [i for i in indices if i not in cache]
             for index, gray in frames(wanted):
-                features[index] = extract_features(gray, verification)
-            return [features[i] for i in indices]
+                cache[index] = extract_features(gray, verification)
+            return [cache[i] for i in indices]
 
         for record in annotations.reported_loop_closures:
             q, m = record.query.index, record.matched.index
-            n = choose_neighbour(m, odometry, baseline_m, reach)
-            query, match, near = features_of(q, m, n)
-            rotation, translation = odometry[m].relative_to(odometry[n])
-            quaternion = rotation.as_quat()
-            neighbour = OdometryNeighbour(
-                near,
-                (quaternion[0], quaternion[1], quaternion[2], quaternion[3]),
-                (translation[0], translation[1], translation[2]),
-            )
+            near = choose_neighbours(m, odometry, baselines_m, reach)
+            query, match, *others = features_of(q, m, *near)
+            neighbours = []
+            for n, features in zip(near, others, strict=True):
+                rotation, translation = odometry[m].relative_to(odometry[n])
+                quaternion = rotation.as_quat()
+                neighbours.append(
+                    OdometryNeighbour(
+                        features,
+                        (quaternion[0], quaternion[1], quaternion[2], quaternion[3]),
+                        (translation[0], translation[1], translation[2]),
+                    )
+                )
             verdict = verdict_of(record)
             pose = metric_pose(
-                query, match, verdict, intrinsics, verification, params, neighbour=neighbour
+                query, match, verdict, intrinsics, verification, params, neighbours=neighbours
             )
             if pose is None:
                 continue
-            results.append(_compare(q, m, n, pose, verdict, truth[q].relative_to(truth[m])))
+            results.append(_compare(q, m, near, pose, verdict, truth[q].relative_to(truth[m])))
     return results
 
 
@@ -195,7 +207,7 @@ def _verification_parameters(annotations: AnnotatedLog) -> VerificationParameter
 
 
 def _compare(
-    q: int, m: int, n: int, pose: MetricPose, verdict: Verdict, true: tuple[Rotation, F64]
+    q: int, m: int, n: list[int], pose: MetricPose, verdict: Verdict, true: tuple[Rotation, F64]
 ) -> PairResult:
     true_rotation, true_translation = true
     rotation_error = _angle_deg(Rotation.from_quat(pose.rotation_xyzw) * true_rotation.inv())
@@ -244,7 +256,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="*", type=Path, default=SAMPLES)
     parser.add_argument("--scratch", type=Path, default=Path("/tmp/metric-pose"))
-    parser.add_argument("--baseline", type=float, default=1.0, help="neighbour baseline, m")
+    parser.add_argument(
+        "--baselines", default="1,2", help="neighbour baselines on each side, m, comma-separated"
+    )
     parser.add_argument("--reach", type=int, default=8, help="neighbour within +-frames")
     parser.add_argument("--detector", help="features for the metric fit (default: the run's)")
     parser.add_argument("--max-features", type=int, help="(default: the run's)")
@@ -252,21 +266,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.scratch.mkdir(parents=True, exist_ok=True)
     params = MetricPoseParameters()
-    changes: dict[str, object] = {}
+    changes: dict[str, Any] = {}
     if args.detector:
         changes["feature_detector"] = args.detector
     if args.max_features:
         changes["max_features"] = args.max_features
     everything: list[PairResult] = []
     rows = []
+    baselines = [float(b) for b in args.baselines.split(",")]
     for log in args.logs:
-        results = measure_log(log, args.scratch, params, args.baseline, args.reach, changes)
+        results = measure_log(log, args.scratch, params, baselines, args.reach, changes)
         everything += results
         rows.append(table_rows(log.name, results))
         if args.verbose:
             for r in results:
                 print(
-                    f"{log.name} q{r.query} m{r.match} n{r.neighbour} {r.pose.method}"
+                    f"{log.name} q{r.query} m{r.match} n{r.neighbours} {r.pose.method}"
                     f" inliers {r.pose.inliers} rms {r.pose.rms_px:.2f} px"
                     f" t_err {r.translation_error_m:.3f} m r_err {r.rotation_error_deg:.2f} deg"
                     f" |t_true| {r.placeholder_error_m:.2f} m {r.pose.reason}",

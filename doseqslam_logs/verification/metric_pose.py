@@ -1,12 +1,12 @@
 """Metric relative pose of a verified loop pair (issue #20): a ladder of fits, best first.
 
-Pure computation: features, a depth image or a neighbouring frame with its odometry, and the
+Pure computation: features, a depth image or neighbouring frames with their odometry, and the
 pair's `Verdict` in; a `MetricPose` out. The rungs, each used when the caller has what it needs:
 
 1. ``depth_pnp``: the match frame's aligned depth image gives 3-D points at its keypoints;
    PnP-RANSAC of the query's keypoints against them, then Levenberg-Marquardt refinement.
-2. ``odometry_pnp``: the match frame's keypoints are triangulated against a neighbouring frame
-   of the match, with the odometry's relative pose between the two as the baseline (this is
+2. ``odometry_pnp``: the match frame's keypoints are triangulated against neighbouring frames
+   of the match, with the odometry's relative pose between them as the baseline (this is
    where the metric scale comes from); then the same PnP of the query.
 3. ``rotation_only``: the essential fit's rotation (what `Verdict` holds); the translation is
    unknown and left as None, never a zero.
@@ -33,7 +33,7 @@ odometry's scale error over the baseline (rung 2) are not in it.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -128,11 +128,11 @@ def metric_pose(
     params: MetricPoseParameters | None = None,
     *,
     depth: DepthImage | None = None,
-    neighbour: OdometryNeighbour | None = None,
+    neighbours: Sequence[OdometryNeighbour] = (),
 ) -> MetricPose | None:
     """The best rung for a verified pair: depth PnP when `depth` (the match frame's, float32
     metres, NaN or <= 0 invalid, the frame's size) is given, else or on failure odometry PnP
-    when `neighbour` is, else or on failure the verdict's rotation. `verification` gives the
+    when `neighbours` are, else or on failure the verdict's rotation. `verification` gives the
     ratio test (as the pair was verified). None when every rung tried failed and the verdict
     has no rotation.
     """
@@ -143,8 +143,8 @@ def metric_pose(
         if isinstance(outcome, MetricPose):
             return outcome
         reasons.append(f"depth_pnp: {outcome}")
-    if neighbour is not None:
-        outcome = odometry_pnp(query, match, neighbour, verdict, intrinsics, verification, params)
+    if neighbours:
+        outcome = odometry_pnp(query, match, neighbours, verdict, intrinsics, verification, params)
         if isinstance(outcome, MetricPose):
             return _with_reasons(outcome, reasons)
         reasons.append(f"odometry_pnp: {outcome}")
@@ -217,24 +217,43 @@ def _back_project(pixels: F64, z: F64, intrinsics: Intrinsics) -> F64:
 def odometry_pnp(
     query: FrameFeatures,
     match: FrameFeatures,
-    neighbour: OdometryNeighbour,
+    neighbours: Sequence[OdometryNeighbour],
     verdict: Verdict,
     intrinsics: Intrinsics,
     verification: VerificationParameters,
     params: MetricPoseParameters,
 ) -> MetricPose | str:
-    """Rung 2: the match's keypoints triangulated against the neighbour's (the odometry's
-    relative pose as the baseline), PnP of the query's. A MetricPose, or why not."""
-    baseline = float(np.linalg.norm(neighbour.translation))
-    if baseline < params.min_baseline_m:
-        return f"degenerate baseline ({baseline:.2f} m < {params.min_baseline_m:g} m)"
-    scale = min(query.scale, match.scale, neighbour.features.scale)
-    triangulated = _triangulate(match, neighbour, intrinsics, verification, params, scale)
-    if isinstance(triangulated, str):
-        return triangulated
-    m_with_point, points_by_feature = triangulated
+    """Rung 2: the match's keypoints triangulated against each neighbour's (the odometry's
+    relative pose as the baseline), PnP of the query's. A MetricPose, or why not.
+
+    Each match feature keeps the point of the neighbour that sees it under the widest
+    parallax: neighbours on both sides of the match (or at two distances) give 3-D points to
+    more of its features than one does.
+    """
+    if not neighbours:
+        raise ValueError("odometry_pnp needs at least one neighbour")
+    longest = max(float(np.linalg.norm(n.translation)) for n in neighbours)
+    usable = [n for n in neighbours if np.linalg.norm(n.translation) >= params.min_baseline_m]
+    if not usable:
+        return f"degenerate baseline ({longest:.2f} m < {params.min_baseline_m:g} m)"
+    scale = min([query.scale, match.scale] + [n.features.scale for n in usable])
+    triangulated = [_triangulate(match, n, intrinsics, verification, params, scale) for n in usable]
+    # -1: no point from that neighbour (a point's parallax is >= 0).
+    angles = np.nan_to_num(np.stack([t.parallax_deg for t in triangulated]), nan=-1.0)
+    best = np.argmax(angles, axis=0)
+    parallax = angles[best, np.arange(match.count)]
+    points_by_feature = np.stack([t.points for t in triangulated])[best, np.arange(match.count)]
+    good = parallax >= 0
+    wide = good & (parallax >= params.min_parallax_deg)
+    if np.count_nonzero(wide) < params.min_inliers:
+        if np.count_nonzero(good) >= params.min_inliers:
+            return (
+                f"parallax too small ({np.count_nonzero(wide)} of {np.count_nonzero(good)} "
+                f"points over {params.min_parallax_deg:g} deg)"
+            )
+        return f"too few triangulated points ({np.count_nonzero(good)} < {params.min_inliers})"
     q_index, m_index = ratio_matches(query, match, verification.ratio)
-    keep = m_with_point[m_index]
+    keep = wide[m_index]
     if np.count_nonzero(keep) < params.min_inliers:
         return (
             f"too few query matches on triangulated points "
@@ -245,6 +264,15 @@ def odometry_pnp(
     return _pnp(points, image, verdict, intrinsics, params, scale, "odometry_pnp")
 
 
+@dataclass(frozen=True, eq=False)
+class _Triangulated:
+    """Per match feature: its 3-D point (match camera frame) and the angle between its two
+    rays, NaN where no good point (not matched, behind a camera, reprojected too far)."""
+
+    points: F64  # (match.count, 3)
+    parallax_deg: F64  # (match.count,)
+
+
 def _triangulate(
     match: FrameFeatures,
     neighbour: OdometryNeighbour,
@@ -252,15 +280,14 @@ def _triangulate(
     verification: VerificationParameters,
     params: MetricPoseParameters,
     scale: float,
-) -> tuple[npt.NDArray[np.bool_], F64] | str:
-    """Per match feature: whether it has a good 3-D point (match camera frame) and the point.
-
-    Good: in front of both cameras, reprojected within the PnP threshold in both views, and
-    seen under at least `min_parallax_deg` (nearly parallel rays fix no depth).
-    """
+) -> _Triangulated:
+    """The match's features triangulated against one neighbour's: good points are in front of
+    both cameras and reprojected within the PnP threshold in both views."""
     m_index, n_index = ratio_matches(match, neighbour.features, verification.ratio)
-    if m_index.size < params.min_inliers:
-        return f"too few neighbour matches ({m_index.size} < {params.min_inliers})"
+    by_feature = np.zeros((match.count, 3))
+    parallax = np.full(match.count, np.nan)
+    if m_index.size == 0:
+        return _Triangulated(by_feature, parallax)
     k = intrinsics.matrix()
     rotation = Rotation.from_quat(neighbour.rotation_xyzw).as_matrix()
     translation = np.asarray(neighbour.translation, np.float64)
@@ -283,20 +310,9 @@ def _triangulate(
         & (error_n <= threshold)
     )
     centre_n = -rotation.T @ translation  # the neighbour camera's centre in the match frame
-    parallax = _ray_angle_deg(points, points - centre_n)
-    wide = good & (parallax >= params.min_parallax_deg)
-    if np.count_nonzero(wide) < params.min_inliers:
-        if np.count_nonzero(good) >= params.min_inliers:
-            return (
-                f"parallax too small ({np.count_nonzero(wide)} of {np.count_nonzero(good)} "
-                f"points over {params.min_parallax_deg:g} deg)"
-            )
-        return f"too few triangulated points ({np.count_nonzero(good)} < {params.min_inliers})"
-    has_point = np.zeros(match.count, bool)
-    has_point[m_index[wide]] = True
-    by_feature = np.zeros((match.count, 3))
-    by_feature[m_index[wide]] = points[wide]
-    return has_point, by_feature
+    by_feature[m_index[good]] = points[good]
+    parallax[m_index[good]] = _ray_angle_deg(points[good], points[good] - centre_n)
+    return _Triangulated(by_feature, parallax)
 
 
 def _ray_angle_deg(a: F64, b: F64) -> F64:
