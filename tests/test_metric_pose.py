@@ -28,8 +28,9 @@ K = Intrinsics(FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2)
 P = MetricPoseParameters()
 NOISE_PX = 0.5
 # Tolerances of a recovered pose on these scenes (points 4-15 m away, 0.5 px noise; rung 2
-# with a 1 m baseline along the optical axis). Measured over 300 random scenes: worst
-# translation errors 0.024 m (depth) and 0.21 m (odometry), rotation 0.16 and 0.86 deg.
+# with a 1 m baseline along the optical axis). Measured over 700 random scenes like the
+# hypothesis tests': worst translation errors 0.025 m (depth) and 0.21 m (odometry), rotation
+# 0.20 and 0.96 deg; at least 137 of 150 depth inliers.
 DEPTH_TRANSLATION_TOL_M = 0.05
 ODOMETRY_TRANSLATION_TOL_M = 0.30  # triangulated points carry depth noise too
 ROTATION_TOL_DEG = 0.5
@@ -151,14 +152,21 @@ def errors(pose: MetricPose, truth: Pose) -> tuple[float, float]:
     return translation, math.degrees(rotation.magnitude())
 
 
-def run(scene: Scene, *, depth: bool, odometry: bool, off_deg: float = 0.0) -> MetricPose | None:
+def run(
+    scene: Scene,
+    *,
+    depth: bool,
+    odometry: bool,
+    off_deg: float = 0.0,
+    params: MetricPoseParameters = P,
+) -> MetricPose | None:
     return metric_pose(
         scene.query,
         scene.match,
         verdict_of(scene.truth, off_deg),
         K,
         DEFAULT_VERIFICATION,
-        P,
+        params,
         depth=scene.depth if depth else None,
         neighbours=scene.neighbours if odometry else [],
     )
@@ -185,7 +193,7 @@ def test_depth_pnp_recovers_random_poses(yaw: float, x: float, z: float, seed: i
     translation_error, rotation_error = errors(pose, truth)
     assert translation_error < DEPTH_TRANSLATION_TOL_M
     assert rotation_error < ROTATION_TOL_DEG
-    assert pose.inliers >= 140  # of 150, none wrong
+    assert pose.inliers >= 135  # of 150, none wrong (0.5 px noise in both views)
     assert pose.rms_px < 3 * NOISE_PX
 
 
@@ -215,11 +223,20 @@ def test_too_few_depths_fall_back() -> None:
 
 
 def test_a_fit_that_disagrees_with_the_epipolar_rotation_is_refused() -> None:
-    pose = run(make_scene(LOOP), depth=True, odometry=False, off_deg=8.0)
+    strict = MetricPoseParameters(keep_better_supported=False)
+    pose = run(make_scene(LOOP), depth=True, odometry=False, off_deg=8.0, params=strict)
     assert pose is not None and pose.method == "rotation_only"
-    assert "depth_pnp: disagrees with the epipolar fit (rotation 8.0 deg apart > 5 deg)" in (
-        pose.reason
+    assert (
+        pose.reason == "depth_pnp: disagrees with the epipolar fit (rotation 8.0 deg apart > 5 deg)"
     )
+
+
+def test_a_disagreeing_fit_that_explains_more_matches_than_the_epipolar_one_is_kept() -> None:
+    # The verdict's rotation 8 deg off: its E explains few of the matches, the PnP pose all.
+    pose = run(make_scene(LOOP), depth=True, odometry=False, off_deg=8.0)
+    assert pose is not None and pose.method == "depth_pnp"
+    translation_error, rotation_error = errors(pose, LOOP)
+    assert translation_error < DEPTH_TRANSLATION_TOL_M and rotation_error < ROTATION_TOL_DEG
 
 
 # -- rung 2: odometry baseline ------------------------------------------------------------

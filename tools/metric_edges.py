@@ -262,10 +262,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--reach", type=int, default=8, help="neighbour within +-frames")
     parser.add_argument("--detector", help="features for the metric fit (default: the run's)")
     parser.add_argument("--max-features", type=int, help="(default: the run's)")
+    parser.add_argument(
+        "--max-disagreement",
+        type=float,
+        default=MetricPoseParameters.max_rotation_disagreement_deg,
+        help="deg between the PnP and the epipolar rotation",
+    )
     parser.add_argument("--verbose", action="store_true", help="one line per pair")
     args = parser.parse_args(argv)
     args.scratch.mkdir(parents=True, exist_ok=True)
-    params = MetricPoseParameters()
+    params = MetricPoseParameters(max_rotation_disagreement_deg=args.max_disagreement)
     changes: dict[str, Any] = {}
     if args.detector:
         changes["feature_detector"] = args.detector

@@ -67,6 +67,11 @@ class MetricPoseParameters:
     min_baseline_m: float = 0.2  # rung 2: odometry distance between match and neighbour
     min_parallax_deg: float = 1.0  # rung 2: angle between the two rays of a triangulated point
     min_pixel_sigma_px: float = 0.3  # floor of the covariance's pixel sigma (original pixels)
+    # A PnP pose that disagrees with the epipolar fit is still kept when it explains strictly
+    # more of the pair's matches (Sampson distance within the verification's threshold): the
+    # essential fit of a short baseline trades rotation for translation, and on our samples it
+    # was the wrong one in 5 of the 6 disagreements (docs/export.md). False: always refuse.
+    keep_better_supported: bool = True
 
     def __post_init__(self) -> None:
         positive = (
@@ -191,7 +196,8 @@ def depth_pnp(
     points = _back_project(pixels[valid], z[valid], intrinsics)
     image = query.keypoints[q_index[valid]].astype(np.float64)
     scale = min(query.scale, match.scale)
-    return _pnp(points, image, verdict, intrinsics, params, scale, "depth_pnp")
+    pair = _pair_rays(query, match, q_index, m_index, intrinsics, verification)
+    return _pnp(points, image, verdict, intrinsics, params, scale, pair, "depth_pnp")
 
 
 def _depth_at(depth: DepthImage, pixels: F64) -> F64:
@@ -261,7 +267,8 @@ def odometry_pnp(
         )
     points = points_by_feature[m_index[keep]]
     image = query.keypoints[q_index[keep]].astype(np.float64)
-    return _pnp(points, image, verdict, intrinsics, params, scale, "odometry_pnp")
+    pair = _pair_rays(query, match, q_index, m_index, intrinsics, verification)
+    return _pnp(points, image, verdict, intrinsics, params, scale, pair, "odometry_pnp")
 
 
 @dataclass(frozen=True, eq=False)
@@ -331,6 +338,7 @@ def _pnp(
     intrinsics: Intrinsics,
     params: MetricPoseParameters,
     scale: float,
+    pair: _PairRays,
     method: Method,
 ) -> MetricPose | str:
     """PnP-RANSAC of `image` (query pixels) against `points` (match camera frame), LM
@@ -369,12 +377,9 @@ def _pnp(
     rms = float(np.sqrt(np.mean(np.square(residuals))))
     if rms > params.max_rms_px / scale:
         return f"residual too large ({rms:.2f} px > {params.max_rms_px / scale:.2f} px)"
-    disagreement = _rotation_disagreement_deg(rotation, verdict)
-    if disagreement is not None and disagreement > params.max_rotation_disagreement_deg:
-        return (
-            f"disagrees with the epipolar fit (rotation {disagreement:.1f} deg apart > "
-            f"{params.max_rotation_disagreement_deg:g} deg)"
-        )
+    refusal = _disagreement(rotation, translation, verdict, pair, params)
+    if refusal:
+        return refusal
     covariance = _pnp_covariance(points[chosen], image[chosen], rotation, translation, k, params)
     return MetricPose(
         method=method,
@@ -431,11 +436,27 @@ def _symmetric_inverse(matrix: F64) -> F64:
     return np.asarray((inverse + inverse.T) / 2, np.float64)
 
 
-def _rotation_disagreement_deg(rotation: F64, verdict: Verdict) -> float | None:
-    if verdict.rotation_xyzw is None:
-        return None
+def _disagreement(
+    rotation: F64, translation: F64, verdict: Verdict, pair: _PairRays, params: MetricPoseParameters
+) -> str:
+    """Why the PnP pose is refused against the epipolar fit ("" when it is not)."""
+    if verdict.rotation_xyzw is None or verdict.translation_direction is None:
+        return ""
     epipolar = Rotation.from_quat(verdict.rotation_xyzw)
-    return math.degrees((Rotation.from_matrix(rotation) * epipolar.inv()).magnitude())
+    apart = math.degrees((Rotation.from_matrix(rotation) * epipolar.inv()).magnitude())
+    if apart <= params.max_rotation_disagreement_deg:
+        return ""
+    text = (
+        f"disagrees with the epipolar fit (rotation {apart:.1f} deg apart > "
+        f"{params.max_rotation_disagreement_deg:g} deg"
+    )
+    if not params.keep_better_supported:
+        return text + ")"
+    theirs = pair.support(epipolar.as_matrix(), np.asarray(verdict.translation_direction))
+    ours = pair.support(rotation, translation)
+    if ours > theirs:
+        return ""
+    return text + f", which explains {theirs} of the {pair.count} matches to the PnP pose's {ours})"
 
 
 def _quaternion(rotation: F64) -> tuple[float, float, float, float]:
@@ -467,14 +488,10 @@ def rotation_only(
     rotation = Rotation.from_quat(verdict.rotation_xyzw).as_matrix()
     direction = np.asarray(verdict.translation_direction, np.float64)
     q_index, m_index = ratio_matches(query, match, verification.ratio)
-    k_inv = np.asarray(np.linalg.inv(intrinsics.matrix()), np.float64)
-    rays_q = _rays(query.keypoints[q_index], k_inv)
-    rays_m = _rays(match.keypoints[m_index], k_inv)
-    # Sampson distances in normalized coordinates, times f for pixels.
-    focal = (intrinsics.fx + intrinsics.fy) / 2
-    threshold = verification.ransac_threshold_px / min(query.scale, match.scale)
-    distances = _sampson(rays_q, rays_m, rotation, direction) * focal
-    inlier = np.abs(distances) <= threshold
+    pair = _pair_rays(query, match, q_index, m_index, intrinsics, verification)
+    rays_q, rays_m, focal = pair.rays_query, pair.rays_match, pair.focal
+    distances = pair.distances_px(rotation, direction)
+    inlier = np.abs(distances) <= pair.threshold_px
     covariance = np.full((6, 6), 0.0)
     covariance[:3, :3] = np.diag([math.inf] * 3)
     count = int(np.count_nonzero(inlier))
@@ -486,6 +503,48 @@ def rotation_only(
     else:
         covariance[3:, 3:] = np.diag([math.inf] * 3)
     return MetricPose("rotation_only", _quaternion(rotation), None, covariance, count, rms)
+
+
+@dataclass(frozen=True, eq=False)
+class _PairRays:
+    """The pair's ratio matches as normalized rays, to check an epipolar geometry against."""
+
+    rays_query: F64
+    rays_match: F64
+    focal: float  # pixels per normalized unit, for Sampson distances in pixels
+    threshold_px: float  # the verification's, in original pixels
+
+    @property
+    def count(self) -> int:
+        return int(self.rays_query.shape[0])
+
+    def distances_px(self, rotation: F64, translation: F64) -> F64:
+        """Signed Sampson distances (pixels) to E = [t]x R."""
+        norm = max(float(np.linalg.norm(translation)), 1e-12)
+        distances: F64 = _sampson(self.rays_query, self.rays_match, rotation, translation / norm)
+        return distances * self.focal
+
+    def support(self, rotation: F64, translation: F64) -> int:
+        """How many matches lie within the threshold of E = [t]x R."""
+        distances = self.distances_px(rotation, translation)
+        return int(np.count_nonzero(np.abs(distances) <= self.threshold_px))
+
+
+def _pair_rays(
+    query: FrameFeatures,
+    match: FrameFeatures,
+    q_index: npt.NDArray[np.int64],
+    m_index: npt.NDArray[np.int64],
+    intrinsics: Intrinsics,
+    verification: VerificationParameters,
+) -> _PairRays:
+    k_inv = np.asarray(np.linalg.inv(intrinsics.matrix()), np.float64)
+    return _PairRays(
+        _rays(query.keypoints[q_index], k_inv),
+        _rays(match.keypoints[m_index], k_inv),
+        (intrinsics.fx + intrinsics.fy) / 2,
+        verification.ransac_threshold_px / min(query.scale, match.scale),
+    )
 
 
 def _rays(pixels: npt.NDArray[np.float32], k_inv: F64) -> F64:
