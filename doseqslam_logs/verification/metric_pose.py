@@ -26,8 +26,12 @@ Covariance of a metric fit: sigma^2 (J^T J)^-1, J the Jacobian of the PnP inlier
 residuals (pixels) with respect to those six parameters, and sigma^2 the a-posteriori variance
 of a pixel coordinate, sum(r^2) / (2n - 6), floored at `MetricPoseParameters.min_pixel_sigma_px`
 (the residuals of RANSAC inliers are truncated at its threshold, so the estimate can come out
-too small on few points). It describes the PnP fit only: the depth noise (rung 1) and the
-odometry's scale error over the baseline (rung 2) are not in it.
+too small on few points). Rung 2's triangulated points are noisy too: there J also holds the
+points as parameters, seen in the query, the match and their neighbour, and the covariance is
+the pose's block of the inverse (Schur complement); without that, repeated synthetic fits
+spread 3x wider than stated. Not in it: the depth image's noise (rung 1) and the odometry's
+error over the baseline (rung 2). On the samples (docs/export.md) the stated sigmas are still
+about 2x too small (SIFT features; 3-4x with ORB): an optimizer should not trust them blindly.
 """
 
 from __future__ import annotations
@@ -248,7 +252,9 @@ def odometry_pnp(
     angles = np.nan_to_num(np.stack([t.parallax_deg for t in triangulated]), nan=-1.0)
     best = np.argmax(angles, axis=0)
     parallax = angles[best, np.arange(match.count)]
-    points_by_feature = np.stack([t.points for t in triangulated])[best, np.arange(match.count)]
+    every = np.arange(match.count)
+    points_by_feature = np.stack([t.points for t in triangulated])[best, every]
+    neighbour_px = np.stack([t.neighbour_px for t in triangulated])[best, every]
     good = parallax >= 0
     wide = good & (parallax >= params.min_parallax_deg)
     if np.count_nonzero(wide) < params.min_inliers:
@@ -268,7 +274,33 @@ def odometry_pnp(
     points = points_by_feature[m_index[keep]]
     image = query.keypoints[q_index[keep]].astype(np.float64)
     pair = _pair_rays(query, match, q_index, m_index, intrinsics, verification)
-    return _pnp(points, image, verdict, intrinsics, params, scale, pair, "odometry_pnp")
+    which = best[m_index[keep]]
+    views = _PointViews(
+        match.keypoints[m_index[keep]].astype(np.float64),
+        neighbour_px[m_index[keep]],
+        np.stack([Rotation.from_quat(n.rotation_xyzw).as_matrix() for n in usable])[which],
+        np.asarray([n.translation for n in usable], np.float64)[which],
+    )
+    return _pnp(points, image, verdict, intrinsics, params, scale, pair, "odometry_pnp", views)
+
+
+@dataclass(frozen=True, eq=False)
+class _PointViews:
+    """Where rung 2's 3-D points were seen, per point: the match's and the neighbour's pixels
+    and that neighbour's pose (X_neighbour = R X_match + t)."""
+
+    match_px: F64  # (n, 2)
+    neighbour_px: F64  # (n, 2)
+    neighbour_rotation: F64  # (n, 3, 3)
+    neighbour_translation: F64  # (n, 3)
+
+    def subset(self, chosen: npt.NDArray[np.intp]) -> _PointViews:
+        return _PointViews(
+            self.match_px[chosen],
+            self.neighbour_px[chosen],
+            self.neighbour_rotation[chosen],
+            self.neighbour_translation[chosen],
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -278,6 +310,7 @@ class _Triangulated:
 
     points: F64  # (match.count, 3)
     parallax_deg: F64  # (match.count,)
+    neighbour_px: F64  # (match.count, 2): the neighbour's keypoint of each point
 
 
 def _triangulate(
@@ -293,8 +326,9 @@ def _triangulate(
     m_index, n_index = ratio_matches(match, neighbour.features, verification.ratio)
     by_feature = np.zeros((match.count, 3))
     parallax = np.full(match.count, np.nan)
+    seen_at = np.zeros((match.count, 2))
     if m_index.size == 0:
-        return _Triangulated(by_feature, parallax)
+        return _Triangulated(by_feature, parallax, seen_at)
     k = intrinsics.matrix()
     rotation = Rotation.from_quat(neighbour.rotation_xyzw).as_matrix()
     translation = np.asarray(neighbour.translation, np.float64)
@@ -319,7 +353,8 @@ def _triangulate(
     centre_n = -rotation.T @ translation  # the neighbour camera's centre in the match frame
     by_feature[m_index[good]] = points[good]
     parallax[m_index[good]] = _ray_angle_deg(points[good], points[good] - centre_n)
-    return _Triangulated(by_feature, parallax)
+    seen_at[m_index[good]] = p_neighbour[good]
+    return _Triangulated(by_feature, parallax, seen_at)
 
 
 def _ray_angle_deg(a: F64, b: F64) -> F64:
@@ -340,6 +375,7 @@ def _pnp(
     scale: float,
     pair: _PairRays,
     method: Method,
+    views: _PointViews | None = None,
 ) -> MetricPose | str:
     """PnP-RANSAC of `image` (query pixels) against `points` (match camera frame), LM
     refinement on the inliers, the checks, the covariance."""
@@ -380,7 +416,16 @@ def _pnp(
     refusal = _disagreement(rotation, translation, verdict, pair, params)
     if refusal:
         return refusal
-    covariance = _pnp_covariance(points[chosen], image[chosen], rotation, translation, k, params)
+    variance = max(
+        float(residuals @ residuals) / max(residuals.size - 6, 1), params.min_pixel_sigma_px**2
+    )
+    if views is None:
+        covariance = _pnp_covariance(points[chosen], image[chosen], rotation, translation, k)
+    else:
+        covariance = _marginal_covariance(
+            points[chosen], rotation, translation, k, views.subset(chosen)
+        )
+    covariance *= variance
     return MetricPose(
         method=method,
         rotation_xyzw=_quaternion(rotation),
@@ -405,20 +450,59 @@ def _residuals(points: F64, image: F64, rotation: F64, translation: F64, k: F64)
     return (_project(in_query, k) - image).ravel()
 
 
-def _pnp_covariance(
-    points: F64, image: F64, rotation: F64, translation: F64, k: F64, params: MetricPoseParameters
-) -> F64:
-    """sigma^2 (J^T J)^-1 over (t, w) with R' = exp(w) R (the module's convention)."""
+def _pnp_covariance(points: F64, image: F64, rotation: F64, translation: F64, k: F64) -> F64:
+    """(J^T J)^-1 over (t, w) with R' = exp(w) R (the module's convention), the 3-D points
+    taken as exact; times sigma^2 it is the covariance."""
 
     def residuals_at(delta: F64) -> F64:
         perturbed = Rotation.from_rotvec(delta[3:]).as_matrix() @ rotation
         return _residuals(points, image, perturbed, translation + delta[:3], k)
 
     jacobian = _numeric_jacobian(residuals_at, 6)
-    residuals = residuals_at(np.zeros(6))
-    dof = max(residuals.size - 6, 1)
-    variance = max(float(residuals @ residuals) / dof, params.min_pixel_sigma_px**2)
-    return _symmetric_inverse(jacobian.T @ jacobian) * variance
+    return _symmetric_inverse(jacobian.T @ jacobian)
+
+
+def _marginal_covariance(
+    points: F64, rotation: F64, translation: F64, k: F64, views: _PointViews
+) -> F64:
+    """(J^T J)^-1 of the pose with the triangulated points as free parameters too, seen in
+    the query, the match and their neighbour (the pose's block, by the Schur complement):
+    a point's depth error moves the pose, which the PnP-only covariance ignores. The
+    odometry's error over the baseline is still not in it."""
+    in_query = (points - translation) @ rotation  # R^T (X - t)
+    j_query = _projection_jacobian(in_query, k) @ rotation.T  # d r_query / d X: (n, 2, 3)
+    j_pose = np.concatenate([-j_query, j_query @ _skew_rows(points - translation)], axis=2)
+    in_neighbour = np.einsum("nij,nj->ni", views.neighbour_rotation, points)
+    in_neighbour += views.neighbour_translation
+    j_match = _projection_jacobian(points, k)
+    j_neighbour = _projection_jacobian(in_neighbour, k) @ views.neighbour_rotation
+    pose_pose = np.einsum("nai,naj->ij", j_pose, j_pose)
+    pose_point = np.einsum("nai,naj->nij", j_pose, j_query)
+    point_point = sum(np.einsum("nai,naj->nij", j, j) for j in (j_query, j_match, j_neighbour))
+    reduced = pose_pose - np.einsum(
+        "nij,njk,nlk->il", pose_point, np.linalg.inv(point_point), pose_point
+    )
+    return _symmetric_inverse(reduced)
+
+
+def _projection_jacobian(points: F64, k: F64) -> F64:
+    """d pixel / d point of the pinhole projection, per point: (n, 2, 3)."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    jacobian = np.zeros((len(points), 2, 3))
+    jacobian[:, 0, 0] = k[0, 0] / z
+    jacobian[:, 0, 2] = -k[0, 0] * x / z**2
+    jacobian[:, 1, 1] = k[1, 1] / z
+    jacobian[:, 1, 2] = -k[1, 1] * y / z**2
+    return jacobian
+
+
+def _skew_rows(vectors: F64) -> F64:
+    """[v]x for each row v: (n, 3, 3)."""
+    skew = np.zeros((len(vectors), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2] = -vectors[:, 2], vectors[:, 1]
+    skew[:, 1, 0], skew[:, 1, 2] = vectors[:, 2], -vectors[:, 0]
+    skew[:, 2, 0], skew[:, 2, 1] = -vectors[:, 1], vectors[:, 0]
+    return skew
 
 
 def _numeric_jacobian(function: Callable[[F64], F64], size: int) -> F64:
