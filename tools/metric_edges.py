@@ -156,11 +156,14 @@ def measure_log(
     params: MetricPoseParameters,
     baselines_m: Sequence[float],
     reach: int,
-    features_changes: dict[str, Any],
+    feature_changes: Sequence[dict[str, Any]],
 ) -> list[PairResult]:
+    """The pairs of one log; each of `feature_changes` (changes to the run's verification
+    parameters, e.g. another detector) is tried in turn until one gives a metric pose."""
     annotations = read_annotations(annotated(log, scratch))
     metadata = annotations.metadata
-    verification = dataclasses.replace(_verification_parameters(annotations), **features_changes)
+    run = _verification_parameters(annotations)
+    variants = [dataclasses.replace(run, **changes) for changes in feature_changes or [{}]]
     info = read_camera_info(log, metadata.image_topic)
     if info is None or annotations.frame_times is None:
         raise RuntimeError(f"{log}: no camera info or no frame times")
@@ -171,37 +174,53 @@ def measure_log(
     truth = camera_poses(read_poses(log, "/ground_truth/pose").interpolate(times))
     results = []
     with LogFrameReader(log, metadata.image_topic, annotations.frame_times) as frames:
-        cache: dict[int, FrameFeatures] = {}
+        cache: dict[tuple[int, int], FrameFeatures] = {}
 
-        def features_of(*indices: int) -> list[FrameFeatures]:
-            wanted = [i for i in indices if i not in cache]
+        def features_of(variant: int, indices: Sequence[int]) -> list[FrameFeatures]:
+            wanted = [i for i in indices if (variant, i) not in cache]
             for index, gray in frames(wanted):
-                cache[index] = extract_features(gray, verification)
-            return [cache[i] for i in indices]
+                cache[variant, index] = extract_features(gray, variants[variant])
+            return [cache[variant, i] for i in indices]
 
         for record in annotations.reported_loop_closures:
             q, m = record.query.index, record.matched.index
             near = choose_neighbours(m, odometry, baselines_m, reach)
-            query, match, *others = features_of(q, m, *near)
-            neighbours = []
-            for n, features in zip(near, others, strict=True):
-                rotation, translation = odometry[m].relative_to(odometry[n])
-                quaternion = rotation.as_quat()
-                neighbours.append(
-                    OdometryNeighbour(
-                        features,
-                        (quaternion[0], quaternion[1], quaternion[2], quaternion[3]),
-                        (translation[0], translation[1], translation[2]),
+            relative = [odometry[m].relative_to(odometry[n]) for n in near]
+            verdict = verdict_of(record)
+            poses = []
+            for variant, verification in enumerate(variants):
+                query, match, *others = features_of(variant, [q, m, *near])
+                neighbours = [
+                    OdometryNeighbour(features, _xyzw(rotation), _xyz(translation))
+                    for features, (rotation, translation) in zip(others, relative, strict=True)
+                ]
+                poses.append(
+                    metric_pose(
+                        query,
+                        match,
+                        verdict,
+                        intrinsics,
+                        verification,
+                        params,
+                        neighbours=neighbours,
                     )
                 )
-            verdict = verdict_of(record)
-            pose = metric_pose(
-                query, match, verdict, intrinsics, verification, params, neighbours=neighbours
-            )
+                if poses[-1] is not None and poses[-1].translation is not None:
+                    break
+            pose = poses[-1] if poses[-1] is not None and poses[-1].translation else poses[0]
             if pose is None:
                 continue
             results.append(_compare(q, m, near, pose, verdict, truth[q].relative_to(truth[m])))
     return results
+
+
+def _xyzw(rotation: Rotation) -> tuple[float, float, float, float]:
+    q = rotation.as_quat()
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def _xyz(vector: F64) -> tuple[float, float, float]:
+    return (float(vector[0]), float(vector[1]), float(vector[2]))
 
 
 def _verification_parameters(annotations: AnnotatedLog) -> VerificationParameters:
@@ -272,7 +291,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--baselines", default="1,2", help="neighbour baselines on each side, m, comma-separated"
     )
     parser.add_argument("--reach", type=int, default=8, help="neighbour within +-frames")
-    parser.add_argument("--detector", help="features for the metric fit (default: the run's)")
+    parser.add_argument(
+        "--detector",
+        help="features for the metric fit (default: the run's); several, comma-separated, are"
+        " tried in turn until one gives a metric pose",
+    )
     parser.add_argument("--max-features", type=int, help="(default: the run's)")
     parser.add_argument(
         "--max-disagreement",
@@ -285,11 +308,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = time.perf_counter()
     args.scratch.mkdir(parents=True, exist_ok=True)
     params = MetricPoseParameters(max_rotation_disagreement_deg=args.max_disagreement)
-    changes: dict[str, Any] = {}
-    if args.detector:
-        changes["feature_detector"] = args.detector
-    if args.max_features:
-        changes["max_features"] = args.max_features
+    sizes = {"max_features": args.max_features} if args.max_features else {}
+    detectors = args.detector.split(",") if args.detector else []
+    changes = [{"feature_detector": d, **sizes} for d in detectors] or [sizes]
     everything: list[PairResult] = []
     rows = []
     baselines = [float(b) for b in args.baselines.split(",")]
