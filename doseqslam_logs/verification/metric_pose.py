@@ -36,6 +36,7 @@ about 2x too small (SIFT features; 3-4x with ORB): an optimizer should not trust
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -99,10 +100,11 @@ class MetricPose:
 
     `translation` is in metres, None for ``rotation_only`` (the scale is unknown: the
     covariance's translation variances are then infinite). `covariance` is 6x6 over
-    (t_x, t_y, t_z, rot x, rot y, rot z) as the module says. `inliers` and `rms_px` (original
-    pixels) describe the fit the pose came from: the PnP inliers, or for ``rotation_only`` the
-    essential fit's inliers and their Sampson distances. `reason` says why better rungs that
-    were tried failed ("" when none failed).
+    (t_x, t_y, t_z, rot x, rot y, rot z) as the module says. `inliers` and `rms_px` describe
+    the fit the pose came from: the PnP inliers and the RMS of their residuals' x and y
+    components (original pixels), or for ``rotation_only`` the ratio matches within the
+    verification's threshold of the verdict's essential matrix and the RMS of their Sampson
+    distances. `reason` says why better rungs that were tried failed ("" when none failed).
     """
 
     method: Method
@@ -162,17 +164,7 @@ def metric_pose(
 
 
 def _with_reasons(pose: MetricPose, reasons: list[str]) -> MetricPose:
-    if not reasons:
-        return pose
-    return MetricPose(
-        pose.method,
-        pose.rotation_xyzw,
-        pose.translation,
-        pose.covariance,
-        pose.inliers,
-        pose.rms_px,
-        "; ".join(reasons),
-    )
+    return dataclasses.replace(pose, reason="; ".join(reasons)) if reasons else pose
 
 
 # -- rung 1: depth ------------------------------------------------------------------------
@@ -377,10 +369,44 @@ def _pnp(
     method: Method,
     views: _PointViews | None = None,
 ) -> MetricPose | str:
-    """PnP-RANSAC of `image` (query pixels) against `points` (match camera frame), LM
-    refinement on the inliers, the checks, the covariance."""
+    """PnP of `image` (query pixels) against `points` (match camera frame), the checks, the
+    covariance."""
     k = intrinsics.matrix()
-    threshold = params.reprojection_threshold_px / scale
+    fit = _fit_pnp(points, image, k, params.reprojection_threshold_px / scale, params)
+    if isinstance(fit, str):
+        return fit
+    rotation, translation, chosen = fit
+    residuals = _residuals(points[chosen], image[chosen], rotation, translation, k)
+    rms = float(np.sqrt(np.mean(np.square(residuals))))
+    if rms > params.max_rms_px / scale:
+        return f"residual too large ({rms:.2f} px > {params.max_rms_px / scale:.2f} px)"
+    refusal = _disagreement(rotation, translation, verdict, pair, params)
+    if refusal:
+        return refusal
+    variance = max(
+        float(residuals @ residuals) / max(residuals.size - 6, 1), params.min_pixel_sigma_px**2
+    )
+    if views is None:
+        covariance = _pnp_covariance(points[chosen], image[chosen], rotation, translation, k)
+    else:
+        covariance = _marginal_covariance(
+            points[chosen], rotation, translation, k, views.subset(chosen)
+        )
+    return MetricPose(
+        method=method,
+        rotation_xyzw=_quaternion(rotation),
+        translation=(float(translation[0]), float(translation[1]), float(translation[2])),
+        covariance=covariance * variance,
+        inliers=int(chosen.size),
+        rms_px=rms,
+    )
+
+
+def _fit_pnp(
+    points: F64, image: F64, k: F64, threshold: float, params: MetricPoseParameters
+) -> tuple[F64, F64, npt.NDArray[np.intp]] | str:
+    """PnP-RANSAC, then Levenberg-Marquardt on the inliers: (R, t) in the module's convention
+    and the inliers' indices, or why not."""
     cv2.setRNGSeed(_FIT_SEED)
     try:
         found, rvec, tvec, inliers = cv2.solvePnPRansac(
@@ -407,33 +433,7 @@ def _pnp(
         rvec, tvec = cv2.solvePnPRefineLM(points[chosen], image[chosen], k, None, rvec, tvec)
     # PnP gives the match frame in the query camera: X_query = R_pnp X_match + t_pnp.
     r_pnp = cv2.Rodrigues(rvec)[0]
-    rotation = r_pnp.T
-    translation = -r_pnp.T @ tvec.ravel()
-    residuals = _residuals(points[chosen], image[chosen], rotation, translation, k)
-    rms = float(np.sqrt(np.mean(np.square(residuals))))
-    if rms > params.max_rms_px / scale:
-        return f"residual too large ({rms:.2f} px > {params.max_rms_px / scale:.2f} px)"
-    refusal = _disagreement(rotation, translation, verdict, pair, params)
-    if refusal:
-        return refusal
-    variance = max(
-        float(residuals @ residuals) / max(residuals.size - 6, 1), params.min_pixel_sigma_px**2
-    )
-    if views is None:
-        covariance = _pnp_covariance(points[chosen], image[chosen], rotation, translation, k)
-    else:
-        covariance = _marginal_covariance(
-            points[chosen], rotation, translation, k, views.subset(chosen)
-        )
-    covariance *= variance
-    return MetricPose(
-        method=method,
-        rotation_xyzw=_quaternion(rotation),
-        translation=(float(translation[0]), float(translation[1]), float(translation[2])),
-        covariance=covariance,
-        inliers=int(chosen.size),
-        rms_px=rms,
-    )
+    return r_pnp.T, -r_pnp.T @ tvec.ravel(), chosen
 
 
 def _project(points: F64, k: F64) -> F64:
