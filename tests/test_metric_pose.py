@@ -396,6 +396,53 @@ def test_parameters_are_validated() -> None:
         MetricPoseParameters(confidence=1.0)
 
 
+@settings(max_examples=50, deadline=None)
+@given(
+    rotvec=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
+    translation=st.lists(st.floats(-5.0, 5.0), min_size=3, max_size=3),
+    seed=st.integers(0, 2**16),
+)
+def test_match_in_query_inverts_the_pose_and_maps_its_covariance(
+    rotvec: list[float], translation: list[float], seed: int
+) -> None:
+    rotation = Rotation.from_rotvec(rotvec)
+    t = np.asarray(translation)
+    spread = np.random.default_rng(seed).normal(size=(6, 6))
+    covariance = spread @ spread.T + 0.1 * np.eye(6)
+    q = rotation.as_quat()
+    pose = MetricPose(
+        "depth_pnp", (q[0], q[1], q[2], q[3]), (t[0], t[1], t[2]), covariance, 30, 0.5
+    )
+    inverse = pose.match_in_query()
+    assert inverse.translation is not None
+    back = Rotation.from_quat(inverse.rotation_xyzw) * rotation
+    assert back.magnitude() < 1e-9
+    assert np.allclose(rotation.apply(inverse.translation) + t, 0, atol=1e-9)
+
+    def inverted(delta: F64) -> F64:
+        """The inverse's perturbation (dt', w') for a perturbation (dt, w) of the pose."""
+        turned = Rotation.from_rotvec(delta[3:]) * rotation
+        moved_t = -turned.inv().apply(t + delta[:3])
+        w = (turned.inv() * rotation).as_rotvec()  # exp(w') R^T = (exp(w) R)^T
+        return np.concatenate([moved_t - np.asarray(inverse.translation), w])
+
+    step = 1e-6
+    jacobian = np.column_stack(
+        [(inverted(step * e) - inverted(-step * e)) / (2 * step) for e in np.eye(6)]
+    )
+    assert np.allclose(inverse.covariance, jacobian @ covariance @ jacobian.T, rtol=1e-5, atol=1e-7)
+
+
+def test_match_in_query_keeps_an_unknown_translation_unknown() -> None:
+    pose = run(make_scene(LOOP), depth=False, odometry=False)
+    assert pose is not None
+    inverse = pose.match_in_query()
+    assert inverse.translation is None and np.isinf(np.diagonal(inverse.covariance)[:3]).all()
+    assert np.allclose(
+        np.linalg.eigvalsh(inverse.covariance[3:, 3:]), np.linalg.eigvalsh(pose.covariance[3:, 3:])
+    )
+
+
 def test_ratio_matches_are_the_ones_verify_pair_fits() -> None:
     scene = make_scene(LOOP, outliers=0.3)
     q_index, m_index = ratio_matches(scene.query, scene.match, DEFAULT_VERIFICATION.ratio)

@@ -119,6 +119,37 @@ class MetricPose:
     def rotation_deg(self) -> float:
         return math.degrees(Rotation.from_quat(self.rotation_xyzw).magnitude())
 
+    def match_in_query(self) -> MetricPose:
+        """The inverse: the match camera's pose in the query camera's frame
+        (X_query = R' X_match + t', R' = R^T, t' = -R^T t), which is what a pose-graph edge
+        from the query to the match measures (still in optical axes). Its covariance has the
+        same convention, about the query camera's axes now: R perturbed as exp(w) R and t as
+        t + dt give w' = -R^T w and dt' = -R^T dt - R^T [t]x w. Without a translation only the
+        rotation block is mapped (the translation stays unknown)."""
+        rotation = Rotation.from_quat(self.rotation_xyzw).as_matrix()
+        rotation_t = rotation.T
+        jacobian = np.zeros((6, 6))
+        jacobian[3:, 3:] = -rotation_t
+        covariance = np.full((6, 6), 0.0)
+        translation = None
+        if self.translation is None:
+            covariance[:3, :3] = np.diag([math.inf] * 3)
+            block = self.covariance[3:, 3:]
+            covariance[3:, 3:] = jacobian[3:, 3:] @ block @ jacobian[3:, 3:].T
+        else:
+            t = np.asarray(self.translation, np.float64)
+            jacobian[:3, :3] = -rotation_t
+            jacobian[:3, 3:] = -rotation_t @ _skew(t)
+            covariance = jacobian @ self.covariance @ jacobian.T
+            inverse_t = -rotation_t @ t
+            translation = (float(inverse_t[0]), float(inverse_t[1]), float(inverse_t[2]))
+        return dataclasses.replace(
+            self,
+            rotation_xyzw=_quaternion(rotation_t),
+            translation=translation,
+            covariance=(covariance + covariance.T) / 2,
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class OdometryNeighbour:
