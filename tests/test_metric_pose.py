@@ -389,6 +389,39 @@ def test_covariance_matches_the_spread_of_repeated_fits(use_depth: bool) -> None
     assert np.all(stated < 2 * spread + 1e-3) and np.all(spread < 2 * stated)
 
 
+def test_a_known_odometry_error_widens_the_covariance_to_the_spread() -> None:
+    """Neighbour poses off by draws of a stated covariance (3 cm, 0.3 deg): with that
+    covariance given, the stated translation sigma matches the spread of repeated fits (within
+    2x); taken as exact, it is far too small."""
+    sigmas = np.array([0.03] * 3 + [math.radians(0.3)] * 3)
+    rng = np.random.default_rng(3)
+    fits: dict[bool, tuple[list[F64], list[F64]]] = {True: ([], []), False: ([], [])}
+    for seed in range(30):
+        scene = make_scene(LOOP, seed=seed, odometry=(FORWARD_1M,))
+        error = rng.normal(0, sigmas)
+        (true_neighbour,) = scene.neighbours
+        given = Rotation.from_rotvec(error[3:]) * Rotation.from_quat(true_neighbour.rotation_xyzw)
+        x, y, z = np.asarray(true_neighbour.translation) + error[:3]
+        for known in (True, False):
+            scene.neighbours = [
+                OdometryNeighbour(
+                    true_neighbour.features,
+                    tuple(given.as_quat()),  # type: ignore[arg-type]
+                    (x, y, z),
+                    np.diag(np.square(sigmas)) if known else None,
+                )
+            ]
+            pose = run(scene, depth=False, odometry=True)
+            assert pose is not None and pose.translation is not None
+            fits[known][0].append(np.asarray(pose.translation))
+            fits[known][1].append(np.sqrt(np.diagonal(pose.covariance)[:3]))
+    spread = np.std(np.asarray(fits[True][0]) - LOOP.translation, axis=0)
+    stated = np.median(np.asarray(fits[True][1]), axis=0)
+    assert np.all(stated < 2 * spread) and np.all(spread < 2 * stated)
+    exact = np.median(np.asarray(fits[False][1]), axis=0)
+    assert np.all(exact < 0.6 * stated)
+
+
 def test_parameters_are_validated() -> None:
     with pytest.raises(ValueError):
         MetricPoseParameters(min_inliers=3)

@@ -157,6 +157,7 @@ def measure_log(
     baselines_m: Sequence[float],
     reach: int,
     feature_changes: Sequence[dict[str, Any]],
+    odometry_sigma: tuple[float, float] | None = None,
 ) -> list[PairResult]:
     """The pairs of one log; each of `feature_changes` (changes to the run's verification
     parameters, e.g. another detector) is tried in turn until one gives a metric pose."""
@@ -191,7 +192,12 @@ def measure_log(
             for variant, verification in enumerate(variants):
                 query, match, *others = features_of(variant, [q, m, *near])
                 neighbours = [
-                    OdometryNeighbour(features, _xyzw(rotation), _xyz(translation))
+                    OdometryNeighbour(
+                        features,
+                        _xyzw(rotation),
+                        _xyz(translation),
+                        _odometry_covariance(translation, odometry_sigma),
+                    )
                     for features, (rotation, translation) in zip(others, relative, strict=True)
                 ]
                 poses.append(
@@ -212,6 +218,17 @@ def measure_log(
                 continue
             results.append(_compare(q, m, near, pose, verdict, truth[q].relative_to(truth[m])))
     return results
+
+
+def _odometry_covariance(translation: F64, sigma_per_m: tuple[float, float] | None) -> F64 | None:
+    """Odometry's error over a baseline: (metres per metre, degrees per metre) on every axis,
+    growing with the distance; None without a model."""
+    if sigma_per_m is None:
+        return None
+    distance = float(np.linalg.norm(translation))
+    metres, degrees = sigma_per_m
+    sigmas = [metres * distance] * 3 + [math.radians(degrees) * distance] * 3
+    return np.diag(np.square(np.maximum(sigmas, 1e-6)))
 
 
 def _xyzw(rotation: Rotation) -> tuple[float, float, float, float]:
@@ -303,6 +320,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=MetricPoseParameters.max_rotation_disagreement_deg,
         help="deg between the PnP and the epipolar rotation",
     )
+    parser.add_argument(
+        "--odometry-sigma",
+        default="0.03,0.15",
+        help="the odometry's error per metre of baseline: metres, degrees ('none': exact)",
+    )
     parser.add_argument("--verbose", action="store_true", help="one line per pair")
     args = parser.parse_args(argv)
     started = time.perf_counter()
@@ -314,8 +336,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     everything: list[PairResult] = []
     rows = []
     baselines = [float(b) for b in args.baselines.split(",")]
+    odometry_sigma = None
+    if args.odometry_sigma != "none":
+        metres, degrees = (float(v) for v in args.odometry_sigma.split(","))
+        odometry_sigma = (metres, degrees)
     for log in args.logs:
-        results = measure_log(log, args.scratch, params, baselines, args.reach, changes)
+        results = measure_log(
+            log, args.scratch, params, baselines, args.reach, changes, odometry_sigma
+        )
         everything += results
         rows.append(table_rows(log.name, results))
         if args.verbose:

@@ -154,11 +154,17 @@ class MetricPose:
 @dataclass(frozen=True, eq=False)
 class OdometryNeighbour:
     """A frame near the match and where the odometry puts it: X_neighbour = R X_match + t,
-    camera optical frames, t in metres (the caller turns the odometry's body poses into this)."""
+    camera optical frames, t in metres (the caller turns the odometry's body poses into this).
+
+    `covariance`, when known, is that of (t, R) in the module's convention (6x6: t additive,
+    R perturbed as exp(w) R): the odometry's error over the baseline then widens the metric
+    pose's covariance. None: the baseline is taken as exact.
+    """
 
     features: FrameFeatures
     rotation_xyzw: tuple[float, float, float, float]
     translation: tuple[float, float, float]
+    covariance: F64 | None = None
 
 
 def metric_pose(
@@ -277,7 +283,6 @@ def odometry_pnp(
     parallax = angles[best, np.arange(match.count)]
     every = np.arange(match.count)
     points_by_feature = np.stack([t.points for t in triangulated])[best, every]
-    neighbour_px = np.stack([t.neighbour_px for t in triangulated])[best, every]
     good = parallax >= 0
     wide = good & (parallax >= params.min_parallax_deg)
     if np.count_nonzero(wide) < params.min_inliers:
@@ -299,30 +304,31 @@ def odometry_pnp(
     pair = _pair_rays(query, match, q_index, m_index, intrinsics, verification)
     which = best[m_index[keep]]
     views = _PointViews(
-        match.keypoints[m_index[keep]].astype(np.float64),
-        neighbour_px[m_index[keep]],
         np.stack([Rotation.from_quat(n.rotation_xyzw).as_matrix() for n in usable])[which],
         np.asarray([n.translation for n in usable], np.float64)[which],
+        which,
+        tuple(n.covariance for n in usable),
     )
     return _pnp(points, image, verdict, intrinsics, params, scale, pair, "odometry_pnp", views)
 
 
 @dataclass(frozen=True, eq=False)
 class _PointViews:
-    """Where rung 2's 3-D points were seen, per point: the match's and the neighbour's pixels
-    and that neighbour's pose (X_neighbour = R X_match + t)."""
+    """Which neighbour saw each of rung 2's 3-D points (besides the match and the query), its
+    pose (X_neighbour = R X_match + t), and per neighbour the covariance of that pose (None:
+    exact)."""
 
-    match_px: F64  # (n, 2)
-    neighbour_px: F64  # (n, 2)
     neighbour_rotation: F64  # (n, 3, 3)
     neighbour_translation: F64  # (n, 3)
+    neighbour_of: npt.NDArray[np.intp]  # (n,): index into `covariance`
+    covariance: tuple[F64 | None, ...]
 
     def subset(self, chosen: npt.NDArray[np.intp]) -> _PointViews:
         return _PointViews(
-            self.match_px[chosen],
-            self.neighbour_px[chosen],
             self.neighbour_rotation[chosen],
             self.neighbour_translation[chosen],
+            self.neighbour_of[chosen],
+            self.covariance,
         )
 
 
@@ -333,7 +339,6 @@ class _Triangulated:
 
     points: F64  # (match.count, 3)
     parallax_deg: F64  # (match.count,)
-    neighbour_px: F64  # (match.count, 2): the neighbour's keypoint of each point
 
 
 def _triangulate(
@@ -349,9 +354,8 @@ def _triangulate(
     m_index, n_index = ratio_matches(match, neighbour.features, verification.ratio)
     by_feature = np.zeros((match.count, 3))
     parallax = np.full(match.count, np.nan)
-    seen_at = np.zeros((match.count, 2))
     if m_index.size == 0:
-        return _Triangulated(by_feature, parallax, seen_at)
+        return _Triangulated(by_feature, parallax)
     k = intrinsics.matrix()
     rotation = Rotation.from_quat(neighbour.rotation_xyzw).as_matrix()
     translation = np.asarray(neighbour.translation, np.float64)
@@ -376,8 +380,7 @@ def _triangulate(
     centre_n = -rotation.T @ translation  # the neighbour camera's centre in the match frame
     by_feature[m_index[good]] = points[good]
     parallax[m_index[good]] = _ray_angle_deg(points[good], points[good] - centre_n)
-    seen_at[m_index[good]] = p_neighbour[good]
-    return _Triangulated(by_feature, parallax, seen_at)
+    return _Triangulated(by_feature, parallax)
 
 
 def _ray_angle_deg(a: F64, b: F64) -> F64:
@@ -419,15 +422,16 @@ def _pnp(
     )
     if views is None:
         covariance = _pnp_covariance(points[chosen], image[chosen], rotation, translation, k)
+        covariance *= variance
     else:
         covariance = _marginal_covariance(
-            points[chosen], rotation, translation, k, views.subset(chosen)
+            points[chosen], rotation, translation, k, views.subset(chosen), variance
         )
     return MetricPose(
         method=method,
         rotation_xyzw=_quaternion(rotation),
         translation=(float(translation[0]), float(translation[1]), float(translation[2])),
-        covariance=covariance * variance,
+        covariance=covariance,
         inliers=int(chosen.size),
         rms_px=rms,
     )
@@ -494,26 +498,44 @@ def _pnp_covariance(points: F64, image: F64, rotation: F64, translation: F64, k:
 
 
 def _marginal_covariance(
-    points: F64, rotation: F64, translation: F64, k: F64, views: _PointViews
+    points: F64, rotation: F64, translation: F64, k: F64, views: _PointViews, variance: float
 ) -> F64:
-    """(J^T J)^-1 of the pose with the triangulated points as free parameters too, seen in
-    the query, the match and their neighbour (the pose's block, by the Schur complement):
-    a point's depth error moves the pose, which the PnP-only covariance ignores. The
-    odometry's error over the baseline is still not in it."""
+    """Rung 2's covariance, in two parts.
+
+    Pixels: the pose's block of (J^T J)^-1 with the triangulated points as free parameters too,
+    seen in the query, the match and their neighbour (Schur complement over the points), times
+    the pixel variance: a point's depth error moves the pose, which the PnP-only covariance
+    ignores. Baselines: the estimate follows a wrong neighbour pose b (the points move, the PnP
+    follows them), by G = dpose/db from the two least-squares optima (implicit function
+    theorem); each neighbour with a covariance adds G cov G^T.
+    """
     in_query = (points - translation) @ rotation  # R^T (X - t)
     j_query = _projection_jacobian(in_query, k) @ rotation.T  # d r_query / d X: (n, 2, 3)
     j_pose = np.concatenate([-j_query, j_query @ _skew_rows(points - translation)], axis=2)
-    in_neighbour = np.einsum("nij,nj->ni", views.neighbour_rotation, points)
-    in_neighbour += views.neighbour_translation
+    rotated = np.einsum("nij,nj->ni", views.neighbour_rotation, points)
+    j_seen = _projection_jacobian(rotated + views.neighbour_translation, k)
+    j_neighbour = j_seen @ views.neighbour_rotation
     j_match = _projection_jacobian(points, k)
-    j_neighbour = _projection_jacobian(in_neighbour, k) @ views.neighbour_rotation
     pose_pose = np.einsum("nai,naj->ij", j_pose, j_pose)
     pose_point = np.einsum("nai,naj->nij", j_pose, j_query)
-    point_point = sum(np.einsum("nai,naj->nij", j, j) for j in (j_query, j_match, j_neighbour))
-    reduced = pose_pose - np.einsum(
-        "nij,njk,nlk->il", pose_point, np.linalg.inv(point_point), pose_point
+    two_views = np.einsum("nai,naj->nij", j_match, j_match)
+    two_views += np.einsum("nai,naj->nij", j_neighbour, j_neighbour)
+    point = two_views + np.einsum("nai,naj->nij", j_query, j_query)
+    schur = pose_pose - np.einsum("nij,njk,nlk->il", pose_point, np.linalg.inv(point), pose_point)
+    covariance = _symmetric_inverse(schur) * variance
+    # d r_neighbour / d (t, w) of its pose: the projection of [I, -[R X]x]; then dX / db.
+    j_baseline = j_seen @ np.concatenate(
+        [np.broadcast_to(np.eye(3), (len(points), 3, 3)), -_skew_rows(rotated)], axis=2
     )
-    return _symmetric_inverse(reduced)
+    moved = -np.linalg.inv(two_views) @ (j_neighbour.transpose(0, 2, 1) @ j_baseline)
+    follow = _symmetric_inverse(pose_pose)
+    for j, baseline_covariance in enumerate(views.covariance):
+        mine = views.neighbour_of == j
+        if baseline_covariance is None or not mine.any():
+            continue
+        g = -follow @ np.einsum("nij,njk->ik", pose_point[mine], moved[mine])
+        covariance += g @ baseline_covariance @ g.T
+    return np.asarray((covariance + covariance.T) / 2, np.float64)
 
 
 def _projection_jacobian(points: F64, k: F64) -> F64:
