@@ -29,9 +29,11 @@ of a pixel coordinate, sum(r^2) / (2n - 6), floored at `MetricPoseParameters.min
 too small on few points). Rung 2's triangulated points are noisy too: there J also holds the
 points as parameters, seen in the query, the match and their neighbour, and the covariance is
 the pose's block of the inverse (Schur complement); without that, repeated synthetic fits
-spread 3x wider than stated. Not in it: the depth image's noise (rung 1) and the odometry's
-error over the baseline (rung 2). On the samples (docs/export.md) the stated sigmas are still
-about 2x too small (SIFT features; 3-4x with ORB): an optimizer should not trust them blindly.
+spread 3x wider than stated. A neighbour's odometry error (`OdometryNeighbour.covariance`,
+when the caller knows it) adds G cov G^T, G how the estimate follows a wrong baseline. Not in
+it: the depth image's noise (rung 1). On the samples (docs/export.md), with SIFT features and
+the odometry's error given, the squared errors in the stated covariance's metric have the
+median a right covariance gives; with ORB features the sigmas are about 2x too small.
 """
 
 from __future__ import annotations
