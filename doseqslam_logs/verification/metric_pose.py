@@ -281,9 +281,8 @@ def odometry_pnp(
     triangulated = [_triangulate(match, n, intrinsics, verification, params, scale) for n in usable]
     # -1: no point from that neighbour (a point's parallax is >= 0).
     angles = np.nan_to_num(np.stack([t.parallax_deg for t in triangulated]), nan=-1.0)
-    best = np.argmax(angles, axis=0)
-    parallax = angles[best, np.arange(match.count)]
-    every = np.arange(match.count)
+    best, every = np.argmax(angles, axis=0), np.arange(match.count)
+    parallax = angles[best, every]
     points_by_feature = np.stack([t.points for t in triangulated])[best, every]
     good = parallax >= 0
     wide = good & (parallax >= params.min_parallax_deg)
