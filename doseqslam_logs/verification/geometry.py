@@ -342,6 +342,14 @@ def _empty_features(params: VerificationParameters, scale: float) -> FrameFeatur
     )
 
 
+def ratio_matches(
+    query: FrameFeatures, match: FrameFeatures, ratio: float
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """(query indices, match indices) of the ratio-test matches `verify_pair` fits: at most one
+    per match-frame feature (for the metric pose, which needs the correspondences)."""
+    return _ratio_matches(query, match, ratio)
+
+
 def _ratio_matches(
     query: FrameFeatures, match: FrameFeatures, ratio: float
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
