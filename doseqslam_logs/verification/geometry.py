@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from ..detector.segmentation import shrink
+from ..detector.segmentation import feature_image
 from .params import VerificationParameters
 
 GrayImage = npt.NDArray[np.uint8]
@@ -82,7 +82,9 @@ class FrameFeatures:
     keypoints: Points
     descriptors: npt.NDArray[np.uint8]
     detector: str
-    scale: float  # feature-image pixels per original pixel (<= 1)
+    # Feature-image pixels per original pixel (the smaller axis): < 1 for a shrunk frame, > 1
+    # for a small one enlarged (`feature_image`), 1 for a frame detected at its own size.
+    scale: float
 
     @property
     def count(self) -> int:
@@ -133,8 +135,9 @@ def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFe
         raise ValueError("extract_features needs a 2-D uint8 gray image")
     if gray.size == 0:
         return _empty_features(params, 1.0)
-    small = shrink(gray, params.image_max_side)
-    # Per axis: shrink rounds each side separately, so the two ratios differ by < 1 px.
+    # Shrunk to image_max_side, or enlarged to it when under SMALL_FRAME_SIDE px.
+    small = feature_image(gray, params.image_max_side)
+    # Per axis: each side is rounded separately, so the two ratios differ by < 1 px.
     scale_xy = np.array([small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]])
     scale = float(scale_xy.min())
     keypoints, descriptors = _make_extractor(params).detectAndCompute(small, None)

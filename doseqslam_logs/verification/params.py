@@ -39,12 +39,13 @@ class VerificationParameters:
     Determinism needs no seed: OpenCV's RANSAC and USAC seed their own generators (tested).
 
     `ransac_threshold_px` is in pixels of the feature image (the frame shrunk so its longer
-    side is at most `image_max_side`); it is scaled to the original frame's pixels.
+    side is at most `image_max_side`, or a frame under 160 px enlarged to it:
+    `segmentation.feature_image`); it is scaled to the original frame's pixels.
     """
 
     feature_detector: VerificationDetector = "orb"
     max_features: int = 1000  # strongest features kept per frame
-    image_max_side: int = 320  # frames are shrunk to this before feature detection
+    image_max_side: int = 320  # frames are shrunk (small ones enlarged) to this for features
     ratio: float = 0.8  # Lowe ratio test on the two nearest descriptors
     method: RobustMethod = "magsac"  # cv2.USAC_MAGSAC, or cv2.FM_RANSAC / cv2.RANSAC
     ransac_threshold_px: float = 1.0  # epipolar distance (feature-image px) of an inlier
