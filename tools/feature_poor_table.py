@@ -7,10 +7,12 @@ Each source is shrunk to each size (tools/shrink_log.py, area-averaged grey, a R
 mono8 images in a temporary folder), then annotated (`annotate_log`, what `annotate` runs) and
 scored (`evaluate_log`, what `evaluate OUT.mcap --gt GT` runs): the defaults by their verified
 pairs, the unverified SeqSLAM by every pair at its th. Lip6 Outdoor is held out: it is
-reported, never tuned on (`--datasets` leaves it out by default).
+reported, never tuned on (`--datasets` leaves it out by default). `--dark F` multiplies the
+pixels by F after shrinking: the night / low-contrast version.
 
     python tools/feature_poor_table.py                            # RTAB-Map and samples, ~2 min
     python tools/feature_poor_table.py --datasets lip6 --sizes 64x32,128x64
+    python tools/feature_poor_table.py --dark 0.25                # the dark version
 """
 
 from __future__ import annotations
@@ -118,16 +120,17 @@ def row(source: Source, size: str, kind: str, result: AnnotateResult, e: Evaluat
     return "| " + " | ".join(cells) + " |"
 
 
-def measure(source: Source, size: str, folder: Path) -> None:
-    """Packs the source at `size` and prints a row per run."""
+def measure(source: Source, size: str, folder: Path, dark: float = 1.0) -> None:
+    """Packs the source at `size` (pixels times `dark`) and prints a row per run."""
     start = time.perf_counter()
     log = folder / "log.mcap"
     shape = None if size == "full" else shrink_log.parse_size(size)
     camera = None if source.path.is_dir() else shrink_log.scaled_camera(source.path, shape)
-    shrink_log.write_small_log(source.frames(), log, shape, camera=camera)
+    shrink_log.write_small_log(source.frames(), log, shape, dark, camera)
+    label = size if dark == 1.0 else f"{size}, dark x{dark:g}"
     for kind in RUNS:
         result, figures = run(log, folder / "out.mcap", source, kind)
-        print(row(source, size, kind, result, figures), flush=True)
+        print(row(source, label, kind, result, figures), flush=True)
     print(f"{source.name} {size}: {time.perf_counter() - start:.0f} s", file=sys.stderr)
 
 
@@ -136,6 +139,7 @@ def main() -> int:
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--datasets", default="rtabmap,samples")
     parser.add_argument("--sizes", default="full,128x64,64x32", help="full keeps the size")
+    parser.add_argument("--dark", type=float, default=1.0, help="pixel factor, 0 < F <= 1")
     args = parser.parse_args()
     print(
         "| data | frames | run | sequences (median length) | reported | true | false "
@@ -147,7 +151,7 @@ def main() -> int:
         for key in args.datasets.split(","):
             for source in every[key]:
                 for size in args.sizes.split(","):
-                    measure(source, size, Path(scratch))
+                    measure(source, size, Path(scratch), args.dark)
     return 0
 
 
