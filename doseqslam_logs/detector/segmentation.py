@@ -29,7 +29,8 @@ AUTO_ORDER = ("surf", "sift", "orb")
 # thumbnail (docs/results.md, "Feature-poor frames"). Frames this size or larger are only shrunk.
 SMALL_FRAME_SIDE = 160
 # The segmentation detectors that see enlarged small frames: ORB, the segmentation verification
-# runs (VERIFIED_SEGMENTATION). The paper's SIFT / SURF (`--no-verify`) keep `shrink`.
+# runs (VERIFIED_SEGMENTATION), and the one ORB whatever the mode (its border is the reason).
+# The paper's SIFT / SURF (`--no-verify`) keep `shrink`, bit for bit.
 ENLARGED_DETECTORS = ("orb",)
 
 
