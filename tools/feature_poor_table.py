@@ -7,10 +7,19 @@ Each source is shrunk to each size (tools/shrink_log.py, area-averaged grey, a R
 mono8 images in a temporary folder), then annotated (`annotate_log`, what `annotate` runs) and
 scored (`evaluate_log`, what `evaluate OUT.mcap --gt GT` runs): the defaults by their verified
 pairs, the unverified SeqSLAM by every pair at its th. Lip6 Outdoor is held out: it is
-reported, never tuned on (`--datasets` leaves it out by default).
+reported, never tuned on (`--datasets` leaves it out by default). `--dark F` multiplies the
+pixels by F after shrinking: the night / low-contrast version.
+
+How small frames are enlarged for features (issue #22 item 2) was chosen with the options
+that vary it: `--enlarge-below N` (segmentation.SMALL_FRAME_SIDE; 0: never), `--working-size
+T` (the size they are enlarged to: feature_image_max_side and image_max_side), and the two
+ideas tried for 64x32: `--min-inliers K` and `--runs seqslam-verified` (SeqSLAM's decisions,
+checked).
 
     python tools/feature_poor_table.py                            # RTAB-Map and samples, ~2 min
     python tools/feature_poor_table.py --datasets lip6 --sizes 64x32,128x64
+    python tools/feature_poor_table.py --dark 0.25                # the dark version
+    python tools/feature_poor_table.py --sizes 160x120,192x144 --enlarge-below 0 --runs defaults
 """
 
 from __future__ import annotations
@@ -26,12 +35,17 @@ from statistics import median
 
 import shrink_log
 
+import doseqslam_logs.detector.segmentation as segmentation
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.evaluation.log_run import LogEvaluationOptions, evaluate_log
 from doseqslam_logs.evaluation.metrics import Evaluation
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
 from doseqslam_logs.pipeline.feature_health import FeatureHealth
-from doseqslam_logs.verification import DEFAULT_VERIFICATION, verified_detector_parameters
+from doseqslam_logs.verification import (
+    DEFAULT_VERIFICATION,
+    VerificationParameters,
+    verified_detector_parameters,
+)
 
 DATA = Path("../shared/data")
 SAMPLES = Path("sample_logs")
@@ -75,13 +89,53 @@ def sources(data: Path) -> dict[str, list[Source]]:
 
 
 RUNS = ("defaults", "--no-verify --method seqslam")
+# Runs by their --runs name.
+KINDS = {
+    "defaults": "defaults",
+    "seqslam": "--no-verify --method seqslam",
+    "seqslam-verified": "--method seqslam",
+}
 
 
-def run(log: Path, out: Path, source: Source, kind: str) -> tuple[AnnotateResult, Evaluation]:
+@dataclass(frozen=True)
+class Variant:
+    """What the options change in the verified runs (None: the default)."""
+
+    working_size: int | None = None
+    min_inliers: int | None = None
+
+    def note(self) -> str:
+        """The row's words for what changed ('' for the defaults)."""
+        small = segmentation.SMALL_FRAME_SIDE
+        words = [] if small == 160 else [f"enlarged below {small} px" if small else "not enlarged"]
+        if self.working_size is not None:
+            words.append(f"to {self.working_size} px")
+        if self.min_inliers is not None:
+            words.append(f"min_inliers {self.min_inliers}")
+        return ", ".join(words)
+
+    def detector(self) -> dict[str, object]:
+        if self.working_size is None:
+            return {}
+        return {"feature_detector": "orb", "feature_image_max_side": self.working_size}
+
+    def verification(self) -> VerificationParameters:
+        changes: dict[str, object] = {}
+        if self.working_size is not None:
+            changes["image_max_side"] = self.working_size
+        if self.min_inliers is not None:
+            changes["min_inliers"] = self.min_inliers
+        return DEFAULT_VERIFICATION.replace(**changes)
+
+
+def run(
+    log: Path, out: Path, source: Source, kind: str, variant: Variant = Variant()
+) -> tuple[AnnotateResult, Evaluation]:
     kappa = {} if source.kappa_s is None else {"kappa_s": source.kappa_s}
-    if kind == "defaults":
-        params = verified_detector_parameters(**kappa)
-        options = AnnotateOptions(verification=DEFAULT_VERIFICATION, sidecar=True)
+    if kind in ("defaults", "--method seqslam"):
+        method = "doseqslam" if kind == "defaults" else "seqslam"
+        params = verified_detector_parameters(method=method, **variant.detector(), **kappa)
+        options = AnnotateOptions(verification=variant.verification(), sidecar=True)
     else:
         params = Parameters(method="seqslam", **kappa)
         options = AnnotateOptions(verification=None, sidecar=True)
@@ -102,12 +156,14 @@ def warning_cell(health: FeatureHealth | None) -> str:
     return "**yes**: " + ", ".join(parts)
 
 
-def row(source: Source, size: str, kind: str, result: AnnotateResult, e: Evaluation) -> str:
+def row(
+    source: Source, size: str, kind: str, result: AnnotateResult, e: Evaluation, note: str = ""
+) -> str:
     lengths = [d.length for d in result.replay.decisions]
     cells = [
         source.name,
         size,
-        f"`{kind}`" if kind.startswith("-") else kind,
+        (f"`{kind}`" if kind.startswith("-") else kind) + (f" ({note})" if note else ""),
         f"{len(lengths)} ({median(lengths):g})",
         str(result.loop_closures),
         str(e.tp),
@@ -118,16 +174,25 @@ def row(source: Source, size: str, kind: str, result: AnnotateResult, e: Evaluat
     return "| " + " | ".join(cells) + " |"
 
 
-def measure(source: Source, size: str, folder: Path) -> None:
-    """Packs the source at `size` and prints a row per run."""
+def measure(
+    source: Source,
+    size: str,
+    folder: Path,
+    dark: float = 1.0,
+    runs: tuple[str, ...] = RUNS,
+    variant: Variant = Variant(),
+) -> None:
+    """Packs the source at `size` (pixels times `dark`) and prints a row per run."""
     start = time.perf_counter()
     log = folder / "log.mcap"
     shape = None if size == "full" else shrink_log.parse_size(size)
     camera = None if source.path.is_dir() else shrink_log.scaled_camera(source.path, shape)
-    shrink_log.write_small_log(source.frames(), log, shape, camera=camera)
-    for kind in RUNS:
-        result, figures = run(log, folder / "out.mcap", source, kind)
-        print(row(source, size, kind, result, figures), flush=True)
+    shrink_log.write_small_log(source.frames(), log, shape, dark, camera)
+    label = size if dark == 1.0 else f"{size}, dark x{dark:g}"
+    for kind in runs:
+        result, figures = run(log, folder / "out.mcap", source, kind, variant)
+        note = "" if kind.startswith("--no-verify") else variant.note()
+        print(row(source, label, kind, result, figures, note), flush=True)
     print(f"{source.name} {size}: {time.perf_counter() - start:.0f} s", file=sys.stderr)
 
 
@@ -136,7 +201,16 @@ def main() -> int:
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--datasets", default="rtabmap,samples")
     parser.add_argument("--sizes", default="full,128x64,64x32", help="full keeps the size")
+    parser.add_argument("--dark", type=float, default=1.0, help="pixel factor, 0 < F <= 1")
+    parser.add_argument("--runs", default="defaults,seqslam", help=", ".join(KINDS))
+    parser.add_argument("--enlarge-below", type=int, help="px (default SMALL_FRAME_SIDE)")
+    parser.add_argument("--working-size", type=int, help="px small frames are enlarged to")
+    parser.add_argument("--min-inliers", type=int, help="verification's, for the verified runs")
     args = parser.parse_args()
+    if args.enlarge_below is not None:
+        segmentation.SMALL_FRAME_SIDE = args.enlarge_below  # feature_image reads it per call
+    runs = tuple(KINDS[name] for name in args.runs.split(","))
+    variant = Variant(args.working_size, args.min_inliers)
     print(
         "| data | frames | run | sequences (median length) | reported | true | false "
         "| R@P100 % | feature-poor warning |"
@@ -147,7 +221,7 @@ def main() -> int:
         for key in args.datasets.split(","):
             for source in every[key]:
                 for size in args.sizes.split(","):
-                    measure(source, size, Path(scratch))
+                    measure(source, size, Path(scratch), args.dark, runs, variant)
     return 0
 
 

@@ -65,12 +65,13 @@ def write_small_log(
     dark: float = 1.0,
     camera: CameraIntrinsics | None = None,
 ) -> int:
-    """Writes the frames shrunk to `size` (None: their own) as mono8 images on
+    """Writes the frames shrunk to `size` (None: their own) and times `dark` as mono8 images on
     /camera/image_raw, with `camera` as a CameraInfo beside each; returns the count."""
     count = 0
     with open_writer("ros2mcap", out) as writer:
         for stamp, gray in frames:
-            small = gray if size is None else shrink_gray(gray, *size, dark)
+            width, height = size or (gray.shape[1], gray.shape[0])
+            small = gray if size is None and dark == 1.0 else shrink_gray(gray, width, height, dark)
             height, width = small.shape
             writer.write_image(ImageFrame(stamp, small.tobytes(), "mono8", width, height))
             if camera is not None:

@@ -46,7 +46,7 @@ from .difference import FrameStore, sad_columns
 from .enhance import enhance
 from .params import Parameters
 from .place_index import PlaceIndex, PlaceIndexParams
-from .segmentation import create_detector, shrink
+from .segmentation import create_detector, feature_image
 from .trajectory import TrajectoryScores, trajectory_scores
 
 Descriptors = npt.NDArray[np.uint8]
@@ -60,13 +60,13 @@ _orb = threading.local()
 
 
 def orb_descriptors(gray: GrayImage, max_features: int, max_side: int) -> Descriptors | None:
-    """ORB descriptors of the frame shrunk to `max_side` (thread-safe: one ORB per thread),
-    for a segmentation that is not ORB."""
+    """ORB descriptors of the frame shrunk to `max_side`, small frames enlarged to it
+    (`feature_image`), for a segmentation that is not ORB (thread-safe: one ORB per thread)."""
     detector = getattr(_orb, "detector", None)
     if detector is None or getattr(_orb, "features", None) != max_features:
         detector = _orb.detector = create_detector("orb", max_features)[0]
         _orb.features = max_features
-    _, descriptors = detector.detectAndCompute(shrink(gray, max_side), None)
+    _, descriptors = detector.detectAndCompute(feature_image(gray, max_side), None)
     return None if descriptors is None or len(descriptors) == 0 else np.asarray(descriptors)
 
 

@@ -24,6 +24,14 @@ GrayImage = npt.NDArray[np.uint8]
 # The order in which "auto" tries detectors: SURF when the installed OpenCV has the non-free
 # module (the paper's choice), else the free detector chosen by measurement (docs/results.md).
 AUTO_ORDER = ("surf", "sift", "orb")
+# Frames whose longer side is under this are enlarged for feature detection (`feature_image`):
+# ORB keeps a 31-pixel border and describes 31-pixel patches, so it finds almost nothing on a
+# thumbnail (docs/results.md, "Feature-poor frames"). Frames this size or larger are only shrunk.
+SMALL_FRAME_SIDE = 160
+# The segmentation detectors that see enlarged small frames: ORB, the segmentation verification
+# runs (VERIFIED_SEGMENTATION), and the one ORB whatever the mode (its border is the reason).
+# The paper's SIFT / SURF (`--no-verify`) keep `shrink`, bit for bit.
+ENLARGED_DETECTORS = ("orb",)
 
 
 class Segmenter(Protocol):
@@ -59,6 +67,19 @@ def shrink(gray: GrayImage, max_side: int) -> GrayImage:
         return gray
     size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
     return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+
+
+def feature_image(gray: GrayImage, max_side: int) -> GrayImage:
+    """The frame features are detected on: `shrink` to max_side, except that a frame whose
+    longer side is under SMALL_FRAME_SIDE is enlarged (bicubic) to max_side, so that ORB's
+    border and patches leave it room. Frames of SMALL_FRAME_SIDE px or more come out as
+    `shrink` gives them, bit for bit."""
+    longest = max(gray.shape)
+    if not 0 < longest < min(SMALL_FRAME_SIDE, max_side):
+        return shrink(gray, max_side)
+    scale = max_side / longest
+    size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
+    return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_CUBIC), dtype=np.uint8)
 
 
 def create_detector(name: str, max_features: int) -> tuple[Any, int]:
@@ -128,17 +149,19 @@ class DescriptorSegmenter:
         self._matcher = cv2.BFMatcher(norm)
         self._max_features = params.max_features
         self._max_side = params.feature_image_max_side
+        self._image = feature_image if name in ENLARGED_DETECTORS else shrink
         self._ratio = params.match_ratio
         self._min_features = params.min_features
         self._common: _Features | None = None
         self._seeded = False
 
     def prepare(self, gray: GrayImage) -> _Features:
-        """This frame's descriptors (strongest `max_features`), on the shrunk frame."""
+        """This frame's descriptors (strongest `max_features`), on the shrunk frame (ORB: on
+        `feature_image`, which also enlarges small frames)."""
         detector = getattr(self._local, "detector", None)
         if detector is None:
             detector = self._local.detector = create_detector(self.name, self._max_features)[0]
-        keypoints, descriptors = detector.detectAndCompute(shrink(gray, self._max_side), None)
+        keypoints, descriptors = detector.detectAndCompute(self._image(gray, self._max_side), None)
         if descriptors is None or len(keypoints) == 0:
             return _Features(None)
         if len(keypoints) > self._max_features:  # AKAZE/BRISK have no feature budget

@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from ..detector.segmentation import shrink
+from ..detector.segmentation import feature_image
 from .params import VerificationParameters
 
 GrayImage = npt.NDArray[np.uint8]
@@ -84,7 +84,9 @@ class FrameFeatures:
     keypoints: Points
     descriptors: npt.NDArray[np.uint8]
     detector: str
-    scale: float  # feature-image pixels per original pixel (<= 1)
+    # Feature-image pixels per original pixel (the smaller axis): < 1 for a shrunk frame, > 1
+    # for a small one enlarged (`feature_image`), 1 for a frame detected at its own size.
+    scale: float
 
     @property
     def count(self) -> int:
@@ -125,7 +127,8 @@ class Verdict:
 
 def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFeatures:
     """Detect and describe the strongest `params.max_features` features of a gray frame,
-    shrunk to `params.image_max_side`; a frame with fewer than `params.detail_below` there is
+    shrunk to `params.image_max_side` (a frame under SMALL_FRAME_SIDE px enlarged to it:
+    `feature_image`); a frame with fewer than `params.detail_below` there is
     detected again at DETAIL_FACTOR times that side (at most its own size), and the finer
     look is kept when it finds more.
 
@@ -147,9 +150,10 @@ def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFe
 
 
 def _detect(gray: GrayImage, max_side: int, params: VerificationParameters) -> FrameFeatures:
-    """The strongest features of `gray` shrunk to `max_side`, in original pixels."""
-    small = shrink(gray, max_side)
-    # Per axis: shrink rounds each side separately, so the two ratios differ by < 1 px.
+    """The strongest features of `gray` shrunk to `max_side` (enlarged to it when under
+    SMALL_FRAME_SIDE px), in original pixels."""
+    small = feature_image(gray, max_side)
+    # Per axis: each side is rounded separately, so the two ratios differ by < 1 px.
     scale_xy = np.array([small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]])
     scale = float(scale_xy.min())
     keypoints, descriptors = _make_extractor(params).detectAndCompute(small, None)

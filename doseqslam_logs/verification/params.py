@@ -39,12 +39,13 @@ class VerificationParameters:
     Determinism needs no seed: OpenCV's RANSAC and USAC seed their own generators (tested).
 
     `ransac_threshold_px` is in pixels of the feature image (the frame shrunk so its longer
-    side is at most `image_max_side`); it is scaled to the original frame's pixels.
+    side is at most `image_max_side`, or a frame under 160 px enlarged to it:
+    `segmentation.feature_image`); it is scaled to the original frame's pixels.
     """
 
     feature_detector: VerificationDetector = "orb"
     max_features: int = 1000  # strongest features kept per frame
-    image_max_side: int = 320  # frames are shrunk to this before feature detection
+    image_max_side: int = 320  # frames are shrunk (small ones enlarged) to this for features
     # A frame with fewer features than this at image_max_side is detected again at twice that
     # side (never past its own size): on RTAB-Map (512x384) the dim, plain frames are where
     # verification failed, and a finer look finds what 320 px lost (docs/results.md, "A finer
