@@ -123,8 +123,9 @@ class Variant:
         changes: dict[str, object] = {}
         if self.working_size is not None:
             changes["image_max_side"] = self.working_size
-        if self.min_inliers is not None:
+        if self.min_inliers is not None:  # for every pair, enlarged or not
             changes["min_inliers"] = self.min_inliers
+            changes["small_frame_min_inliers"] = self.min_inliers
         return DEFAULT_VERIFICATION.replace(**changes)
 
 

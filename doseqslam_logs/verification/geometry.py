@@ -179,7 +179,9 @@ def verify_pair(
     params: VerificationParameters,
     intrinsics: Intrinsics | None = None,
 ) -> Verdict:
-    """Check that two frames see the same place: ratio-test matches, then a robust F or E fit.
+    """Check that two frames see the same place: ratio-test matches, then a robust F or E fit,
+    accepted at `params.min_inliers` inliers (`small_frame_min_inliers` when a frame of the
+    pair was enlarged: its `scale` exceeds 1).
 
     Degenerate inputs (too few features or matches, a fit that fails) give a rejected verdict.
 
@@ -192,6 +194,8 @@ def verify_pair(
         or query.descriptors.shape[1:] != match.descriptors.shape[1:]
     ):
         raise ValueError(f"cannot match {query.detector} features against {match.detector}")
+    if max(query.scale, match.scale) > 1:  # an enlarged small frame: fewer features to agree on
+        params = dataclasses.replace(params, min_inliers=params.small_frame_min_inliers)
     model: Model = "F" if intrinsics is None else "E"
     needed = max(_MIN_POINTS[model], params.min_inliers)
     if min(query.count, match.count) < needed:

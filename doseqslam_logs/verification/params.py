@@ -58,6 +58,11 @@ class VerificationParameters:
     confidence: float = 0.999
     max_iterations: int = 2000
     min_inliers: int = 30  # accepted when the robust fit's inliers reach this
+    # ... or this many when a frame of the pair was enlarged (under 160 px: `feature_image`):
+    # a thumbnail has fewer features to agree on. Chosen on the 64x32 and 128x64 versions of
+    # RTAB-Map and the samples, daylight and dark: no false pair at 12 and above, the first at
+    # 10; 20 keeps twice that margin (docs/results.md, "Fewer inliers on enlarged frames").
+    small_frame_min_inliers: int = 20
     refine_radius: int = 25  # frames: the match may move to the best frame within +-r
     # Above 1 / query_interval_s frames per second, one candidate in s = that many frames is
     # checked, windows are searched coarse to fine and accepted offsets tracked
@@ -89,10 +94,11 @@ class VerificationParameters:
             )
         if not 0 < self.confidence < 1:
             raise ParameterError(f"confidence must be in (0, 1), got {self.confidence}")
-        if self.min_inliers < MIN_ACCEPTABLE_INLIERS:
-            raise ParameterError(
-                f"min_inliers must be >= {MIN_ACCEPTABLE_INLIERS}, got {self.min_inliers}"
-            )
+        for name in ("min_inliers", "small_frame_min_inliers"):
+            if getattr(self, name) < MIN_ACCEPTABLE_INLIERS:
+                raise ParameterError(
+                    f"{name} must be >= {MIN_ACCEPTABLE_INLIERS}, got {getattr(self, name)}"
+                )
         if self.detail_below < 0:
             raise ParameterError(f"detail_below must be >= 0, got {self.detail_below}")
         if self.refine_radius < 0:
