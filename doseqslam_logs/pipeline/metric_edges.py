@@ -46,6 +46,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..annotations.records import FrameTimes
+from ..errors import SourceError
 from ..sources import open_source
 from ..sources.depth import DepthFrames, find_depth_topic, stream_depth
 from ..sources.image_header import DEFAULT_MAX_PIXELS
@@ -356,10 +357,18 @@ def _finished(edges: MetricEdges, start: float) -> MetricEdges:
 def _odometry(
     read_path: Path, frame_times: FrameTimes, time_source: str, asked: str | None
 ) -> OdometryFrames | None:
+    """The odometry at the frames: `asked` (raises SourceError when it cannot be read), else the
+    first Odometry topic (None when there is none or it cannot be read: the run goes on with
+    the other rungs), "" none."""
     topic = find_odometry_topic(read_path) if asked is None else asked
     if not topic:
         return None
-    track = read_poses(read_path, topic)
+    try:
+        track = read_poses(read_path, topic)
+    except SourceError:
+        if asked is not None:
+            raise
+        return None
     return odometry_frames(track, frame_times.detector_times_ns(time_source))
 
 
