@@ -246,3 +246,31 @@ def test_metric_edges_beat_the_placeholder_after_optimize(loops: AnnotatedLog) -
         true_positions = truth.interpolate(frame_times_ns(loops)[graph.vertex_ids]).positions
         ate[model] = check.umeyama_rmse(optimize_pose_graph(graph).positions, true_positions)
     assert ate["metric"] < ate["placeholder"], ate
+
+
+def test_a_depth_image_of_another_size_than_the_camera_is_not_used(loops: AnnotatedLog) -> None:
+    """A depth image not registered to the camera's pixels gives no depth rung, and says why."""
+    from doseqslam_logs.pipeline.metric_edges import AcceptedPair, _Features, _Fitter
+    from doseqslam_logs.pipeline.reread import LogFrameReader
+    from doseqslam_logs.sources.camera_info import read_camera_info
+    from doseqslam_logs.verification import DEFAULT_VERIFICATION, Intrinsics
+    from doseqslam_logs.verification.geometry import Verdict
+
+    lc = next(lc for lc in loops.reported_loop_closures if lc.has_relative_pose)
+    info = read_camera_info(LOOPS, IMAGE)
+    assert info is not None and loops.frame_times is not None
+    q = lc.rotation_xyzw
+    d = lc.translation_direction
+    verdict = Verdict(
+        True, lc.inliers, lc.tentative_matches, "E", "accepted",
+        (q[0], q[1], q[2], q[3]), lc.rotation_deg, (d[0], d[1], d[2]),
+    )  # fmt: skip
+    pair = AcceptedPair((0, 0), lc.query.index, lc.matched.index, 0, verdict, False)
+    params = replace(DEFAULT_VERIFICATION, feature_detector="sift")
+    with LogFrameReader(LOOPS, IMAGE, loops.frame_times) as reader:
+        fitter = _Fitter(
+            _Features(reader, params), Intrinsics(info.fx, info.fy, info.cx, info.cy), None
+        )
+        pose = fitter.fit(pair, np.ones((96, 128), np.float32), "")
+    assert not isinstance(pose, str) and pose.method == "rotation_only"
+    assert pose.reason.startswith("depth_pnp: depth image 128x96, the camera's 256x192")

@@ -237,11 +237,13 @@ class _Features:
         self.reader, self.params = reader, params
         self.cache = FeatureCache(FEATURE_CACHE_BYTES)
         self.loaded = 0
+        self.shape: tuple[int, ...] | None = None  # (height, width) of the frames decoded
 
     def __call__(self, indices: Sequence[int]) -> list[FrameFeatures]:
         missing = sorted({i for i in indices if self.cache.get(i) is None})
         found = {}
         for index, gray in self.reader(missing):
+            self.shape = gray.shape
             found[index] = extract_features(gray, self.params)
             self.cache.put(index, found[index])
         self.loaded += len(found)
@@ -267,6 +269,11 @@ class _Fitter:
     ) -> MetricPose | str:
         near = [] if self.odometry is None else self.odometry.neighbours(pair.match)
         query, match, *others = self.features([pair.query, pair.match, *near])
+        if depth is not None and depth.shape != self.features.shape:
+            # Not registered to the camera's pixels (REP 118 aligns them): no depth rung.
+            sizes = f"{_size(depth.shape)}, the camera's {_size(self.features.shape)}"
+            no_depth = f"depth_pnp: depth image {sizes}"
+            depth = None
         neighbours = [self._neighbour(pair.match, n, f) for n, f in zip(near, others, strict=True)]
         verification = self.features.params
         pose = metric_pose(
@@ -285,8 +292,8 @@ class _Fitter:
         missing = [no_depth] if depth is None and pose.method != "depth_pnp" else []
         if not neighbours and pose.method == "rotation_only":
             missing.append(self._no_odometry())
-        reasons = [r for r in [*missing, pose.reason] if r]
-        return dataclasses.replace(pose, reason="; ".join(reasons))
+        reasons = [r for r in [*missing, *pose.reason.split("; ")] if r]
+        return dataclasses.replace(pose, reason="; ".join(sorted(reasons, key=_rung)))
 
     def _neighbour(self, match: int, neighbour: int, features: FrameFeatures) -> OdometryNeighbour:
         assert self.odometry is not None
@@ -403,6 +410,15 @@ def _fit_all(
     for left in by_stamp.values():
         for pair in left:
             yield pair.key, fitter.fit(pair, None, no_depth)
+
+
+def _rung(reason: str) -> int:
+    """A reason's place in the ladder ("depth_pnp: ..." first), for their order."""
+    return 0 if reason.startswith("depth_pnp") else 1
+
+
+def _size(shape: tuple[int, ...] | None) -> str:
+    return "?" if shape is None else f"{shape[1]}x{shape[0]}"
 
 
 def _stamp(times: FrameTimes, index: int) -> int:
