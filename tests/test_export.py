@@ -172,7 +172,10 @@ def _information(values: list[str]) -> np.ndarray:
 def test_g2o_vertices_and_edges_are_consistent(
     annotated: Path, log: AnnotatedLog, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    code, out, err = export(capsys, str(annotated), "--format", "g2o", "--odometry-topic", "/odom")
+    code, out, err = export(
+        capsys, str(annotated), "--format", "g2o", "--odometry-topic", "/odom",
+        "--loop-model", "placeholder",
+    )  # fmt: skip
     assert code == 0
     graph = _g2o(out)
     ids = [int(v[0]) for v in graph["VERTEX_SE3:QUAT"]]
@@ -207,6 +210,7 @@ def test_g2o_identity_loop_rotation_and_sigmas(
     annotated: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     args = [str(annotated), "--format", "g2o", "--odometry-topic", "/odom"]
+    args += ["--loop-model", "placeholder"]
     code, out, _ = export(
         capsys, *args, "--identity-loop-rotation", "--loop-translation-sigma", "2",
         "--loop-rotation-sigma", "5",
@@ -222,6 +226,7 @@ def test_g2o_header_states_the_loop_edge_model_and_gtsam_still_reads_the_file(
     annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     args = [str(annotated), "--format", "g2o", "--odometry-topic", "/odom"]
+    args += ["--loop-model", "placeholder"]
     _, out, _ = export(capsys, *args)
     header = "\n".join(line for [line] in _g2o(out)["#"])
     assert out.startswith("# ") and "placeholder measurement model" in header

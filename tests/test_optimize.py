@@ -198,12 +198,13 @@ def test_optimize_brings_the_drifting_drive_closer_to_the_truth(
     assert repr(read_annotations(out).loop_closures) == repr(log.loop_closures)  # NaN != NaN
 
 
-def _far_apart_edge(graph: PoseGraph, truth: Any) -> Edge:
-    """A loop edge between two frames at least 20 m apart: a wrong loop closure."""
+def _far_apart_edge(graph: PoseGraph, truth: Any, template: Edge | None = None) -> Edge:
+    """A loop edge between two frames at least 20 m apart: a wrong loop closure (with the
+    information of `template`, default the first loop edge)."""
     distances = np.linalg.norm(truth[:, None, :] - truth[None, :, :], axis=2)
     far = np.argwhere(distances > 20.0)
     a, b = far[len(far) // 2]
-    template = graph.loop_edges[0]
+    template = template or graph.loop_edges[0]
     query, match = int(graph.vertex_ids[max(a, b)]), int(graph.vertex_ids[min(a, b)])
     return dataclasses.replace(template, from_id=query, to_id=match, quaternion_xyzw=IDENTITY)
 
@@ -212,7 +213,11 @@ def _far_apart_edge(graph: PoseGraph, truth: Any) -> Edge:
 def test_one_wrong_loop_edge_is_rejected_and_does_not_bend_the_trajectory(
     drifting: Path,
 ) -> None:
-    graph = build_pose_graph(read_annotations(drifting), ExportOptions(odometry_topic="/odom"))
+    # The placeholder model, with which the kernel and the check were chosen (with the metric
+    # model the check also drops 3 of the 65 right edges whose stated covariance is too small
+    # for their error: docs/export.md; see the test below).
+    options = ExportOptions(odometry_topic="/odom", loop_model="placeholder")
+    graph = build_pose_graph(read_annotations(drifting), options)
     truth = _truth_at_vertices(drifting, graph)
     wrong = dataclasses.replace(
         graph, loop_edges=[*graph.loop_edges, _far_apart_edge(graph, truth)]
@@ -237,6 +242,23 @@ def test_one_wrong_loop_edge_is_rejected_and_does_not_bend_the_trajectory(
 
 
 # -- other profiles and the errors ----------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_wrong_metric_loop_edge_is_rejected_too(drifting: Path) -> None:
+    """With the metric model (the default), a wrong edge carrying a metric edge's information
+    is rejected and leaves the trajectory as it was."""
+    graph = build_pose_graph(read_annotations(drifting), ExportOptions(odometry_topic="/odom"))
+    truth = _truth_at_vertices(drifting, graph)
+    template = next(e for e in graph.loop_edges if e.model == "odometry_pnp")
+    wrong_edge = _far_apart_edge(graph, truth, template)
+    wrong = dataclasses.replace(graph, loop_edges=[*graph.loop_edges, wrong_edge])
+    clean = optimize_pose_graph(graph)
+    robust = optimize_pose_graph(wrong)
+    assert len(graph.loop_edges) in robust.rejected_loop_edges
+    before = check.umeyama_rmse(clean.positions, truth)
+    after = check.umeyama_rmse(robust.positions, truth)
+    assert after <= 1.2 * before
 
 
 @pytest.fixture(scope="module")

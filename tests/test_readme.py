@@ -259,6 +259,12 @@ def test_quick_start_blocks(shell: Shell) -> None:
     check_section(shell, "Quick start", 2, section("Quick start", README, level="##"), README)
 
 
+def test_pose_graph_block(shell: Shell) -> None:
+    pytest.importorskip("gtsam")
+    heading = "A pose graph with metric loop edges"
+    check_section(shell, heading, 1, section(heading, README, level="##"), README)
+
+
 def test_readme_links_into_the_reference_reach_its_headings() -> None:
     headings = re.findall(r"^#+ (.+)$", REFERENCE.read_text(encoding="utf-8"), re.MULTILINE)
     anchors = {github_anchor(h) for h in headings}

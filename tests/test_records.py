@@ -3,15 +3,18 @@ written by older versions (fewer fields) read with the documented "not recorded"
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_sinks import PARAMETERS_HASH, make_decisions, make_frame_times
 
-from doseqslam_logs.annotations.reader import read_annotations
+from doseqslam_logs.annotations.reader import plain, read_annotations
 from doseqslam_logs.annotations.records import (
     NOT_RECORDED,
     FrameRef,
@@ -107,3 +110,50 @@ def test_metadata_of_an_older_version_takes_defaults() -> None:
     assert meta.parameters == {"threshold": 0.75} and meta.recorded == entries
     with pytest.raises(ValueError):
         RunMetadata.from_entries({**entries, "frames_used": "many"})
+
+
+@pytest.mark.parametrize("profile", ["ros2", "ros1", ""])
+def test_metric_fields_round_trip_in_every_profile(profile: str) -> None:
+    """A rotation-only pose's infinite translation variances survive every encoding (JSON:
+    written as 1e999, read back as infinity); its NaN translation reads back as NaN."""
+    from doseqslam_logs.annotations.records import LOOP_CLOSURE
+    from doseqslam_logs.sinks.encoders import encoder_for_profile
+
+    covariance = [0.0] * 36
+    for i in range(3):
+        covariance[7 * i] = math.inf
+        covariance[7 * (i + 3)] = 1e-4 * (i + 1)
+    closures, _ = built()
+    record = dataclasses.replace(
+        closures[0],
+        metric_method="rotation_only",
+        metric_rotation_xyzw=(0.0, 0.1, 0.0, math.sqrt(0.99)),
+        metric_covariance=tuple(covariance),
+        metric_inliers=40,
+        metric_residual_px=0.7,
+        metric_reason="depth_pnp: no depth topic; odometry_pnp: no odometry topic",
+    )
+    encoder = encoder_for_profile(profile)
+    data = encoder.encode(LOOP_CLOSURE, record.to_message())
+    if profile == "":
+        message = json.loads(data)
+        assert "metric_translation" not in message  # NaN: omitted, as every float
+        assert b"1e999" in data
+    else:
+        message = _ros_message(profile, encoder, data)
+    back = LoopClosureRecord.from_message(message)
+    assert repr(back) == repr(record)
+    assert np.isinf(np.diagonal(back.metric_covariance_matrix())[:3]).all()
+
+
+def _ros_message(profile: str, encoder: object, data: bytes) -> dict[str, object]:
+    """A ROS message decoded with rosbags, as the plain dict the reader gives."""
+    from doseqslam_logs.annotations.records import LOOP_CLOSURE
+
+    typename = encoder.typename(LOOP_CLOSURE)  # type: ignore[attr-defined]
+    store = encoder.typestore  # type: ignore[attr-defined]
+    if profile == "ros2":
+        decoded = store.deserialize_cdr(data, typename)
+    else:
+        decoded = store.deserialize_ros1(data, typename)
+    return plain(decoded)  # type: ignore[no-any-return]

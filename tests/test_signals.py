@@ -55,23 +55,30 @@ pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="needs Linux (/p
 # --- the inputs ---------------------------------------------------------------------------------
 
 
-def repeated_log(path: Path, laps: int, filler: int = 0) -> Path:
-    """The sample's camera messages `laps` times over, lap after lap in log time (use
-    --time-source log: the header stamps repeat), then `filler` tiny JSON messages."""
+def repeated_log(
+    path: Path, laps: int, filler: int = 0, topics: tuple[str, ...] = (TOPIC,)
+) -> Path:
+    """The sample's messages of `topics` (the camera's by default) `laps` times over, lap
+    after lap in log time (use --time-source log: the header stamps repeat), then `filler`
+    tiny JSON messages."""
     with SAMPLE.open("rb") as stream:
-        items = list(make_reader(stream).iter_messages(topics=[TOPIC]))
-    schema, channel, first = items[0]
-    assert schema is not None
-    lap_ns = items[-1][2].log_time - first.log_time + 500_000_000
+        items = list(make_reader(stream).iter_messages(topics=list(topics)))
+    first = items[0][2]
+    lap_ns = max(m.log_time for _, _, m in items) - first.log_time + 500_000_000
     with path.open("wb") as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="ros2")
-        schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
-        camera = writer.register_channel(channel.topic, channel.message_encoding, schema_id)
+        channels: dict[int, int] = {}
+        for schema, channel, _ in items:
+            if channel.id not in channels and schema is not None:
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id
+                )
         for lap in range(laps):
-            for _, _, message in items:
+            for _, channel, message in items:
                 time_ns = message.log_time + lap * lap_ns
-                writer.add_message(camera, time_ns, message.data, time_ns)
+                writer.add_message(channels[channel.id], time_ns, message.data, time_ns)
         if filler:
             other = writer.register_channel("/filler", "json", 0)
             for i in range(filler):
@@ -99,6 +106,10 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {
         "laps": repeated_log(folder / "laps.mcap", LAPS),
         "filler": repeated_log(folder / "filler.mcap", 1, FILLER_MESSAGES),
+        # With the camera's CameraInfo: the accepted pairs get metric poses (rotation only).
+        "calibrated": repeated_log(
+            folder / "calibrated.mcap", LAPS, topics=(TOPIC, "/camera/camera_info")
+        ),
         "images": images,
         "gt": gt,
     }
@@ -207,6 +218,7 @@ def left_in(folder: Path) -> list[str]:
 # The progress each stage shows as it begins (cli/progress.py).
 REPLAY = r"\d+/\d+ frames"
 VERIFY = "verifying the candidate pairs"
+METRIC = "metric poses of the accepted pairs"
 WRITE = "writing the output"
 
 
@@ -216,6 +228,7 @@ WRITE = "writing the output"
         ("replay", signal.SIGINT, "laps", ["--no-verify"]),
         ("verify", signal.SIGTERM, "laps", []),
         ("verify", signal.SIGINT, "laps", []),
+        ("metric", signal.SIGTERM, "calibrated", []),
         ("write", signal.SIGTERM, "filler", ["--no-verify"]),
     ],
 )
@@ -231,7 +244,7 @@ def test_annotate_stops_in_every_stage(
     [copy] = copies
     argv = ["annotate", copy.name, "-o", "out.mcap", "--time-source", "log", *extra]
     with on_terminal(argv, tmp_path) as run:
-        run.wait_for({"replay": REPLAY, "verify": VERIFY, "write": WRITE}[stage])
+        run.wait_for({"replay": REPLAY, "verify": VERIFY, "metric": METRIC, "write": WRITE}[stage])
         code, latency = run.stop(sig)
     check_stopped(run, sig, f"annotate, {stage}", code, latency)
     assert left_in(tmp_path) == [copy.name]  # no output, no temporary file

@@ -11,19 +11,37 @@ edges rejected). A second table injects `--wrong N` wrong loop edges (random ver
 than 15 m apart) into each graph and compares plain least squares, each kernel alone, and each
 kernel with the outlier check. Needs the `gtsam` extra. A few minutes.
 
+`--metric` prints the table of issue #20 instead: for the same drives plus a drifting drive
+with an aligned depth topic (`--depth`), each loop-edge model's error against the true
+relative pose (the edge's measurement: the match's body pose in the query's frame) and the ATE
+after the `optimize` command's optimization of the odometry alone, the placeholder model, the
+metric model, and an oracle graph whose loop edges are the true relative poses (with the
+metric model's information).
+
     python tools/pose_graph_table.py [--wrong 5]
+    python tools/pose_graph_table.py --metric
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
+import make_sample_logs as gen
+import numpy as np
 import pose_graph_check as check
+from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import read_annotations
-from doseqslam_logs.export.gtsam_graph import OptimizeOptions
+from doseqslam_logs.cli.main import main as cli_main
+from doseqslam_logs.export.base import ExportOptions
+from doseqslam_logs.export.gtsam_graph import OptimizeOptions, optimize_pose_graph
+from doseqslam_logs.export.loops import frame_times_ns
+from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph, relative_pose
+from doseqslam_logs.sources.poses import PoseTrack, read_poses
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -46,10 +64,117 @@ INJECTED = {
 }
 
 
+def generate_depth_drive(folder: Path, seed: int = 29) -> Path:
+    """The drifting drive of `seed` with an aligned depth topic (make_sample_logs --depth)."""
+    config = gen.Config(
+        name=f"drift{seed}depth",
+        seed=seed,
+        route="loops",
+        duration=120.0,
+        rate=2.0,
+        width=256,
+        height=192,
+        formats=("ros2mcap",),
+        quality=70,
+        noise_sigma=1.5,
+        depth=True,
+    )
+    gen.generate(config, folder, progress=False)
+    return folder / f"drift{seed}depth.ros2.mcap"
+
+
+def oracle_edges(graph: PoseGraph, truth: PoseTrack) -> list[Edge]:
+    """The graph's loop edges with the true relative pose as their measurement."""
+    index = {int(v): k for k, v in enumerate(graph.vertex_ids)}
+    edges = []
+    for edge in graph.loop_edges:
+        i, j = index[edge.from_id], index[edge.to_id]
+        t, q = relative_pose(
+            truth.positions[i],
+            truth.quaternions_xyzw[i],
+            truth.positions[j],
+            truth.quaternions_xyzw[j],
+        )
+        edges.append(dataclasses.replace(edge, translation=t, quaternion_xyzw=q))
+    return edges
+
+
+def edge_errors(edges: Sequence[Edge], oracle: Sequence[Edge]) -> tuple[list[float], list[float]]:
+    """Translation (m; not for rotation-only edges) and rotation (deg) errors of each edge."""
+    translation, rotation = [], []
+    for edge, true in zip(edges, oracle, strict=True):
+        turn = Rotation.from_quat(true.quaternion_xyzw).inv() * Rotation.from_quat(
+            edge.quaternion_xyzw
+        )
+        rotation.append(float(np.degrees(turn.magnitude())))
+        if edge.model != "rotation_only":
+            translation.append(float(np.linalg.norm(edge.translation - true.translation)))
+    return translation, rotation
+
+
+def _stats(values: Sequence[float], digits: int) -> str:
+    if not values:
+        return "-"
+    return f"{np.median(values):.{digits}f} / {np.percentile(values, 95):.{digits}f}"
+
+
+def metric_row(name: str, annotated: Path) -> str:
+    """One drive's row of the --metric table."""
+    log = read_annotations(annotated)
+    truth_track = read_poses(annotated, "/ground_truth/pose")
+    graphs = {
+        model: build_pose_graph(log, ExportOptions(odometry_topic="/odom", loop_model=model))
+        for model in ("placeholder", "metric")
+    }
+    metric = graphs["metric"]
+    truth = truth_track.interpolate(frame_times_ns(log)[metric.vertex_ids])
+    oracle = oracle_edges(metric, truth)
+    cells = []
+    for graph in graphs.values():
+        t, r = edge_errors(graph.loop_edges, oracle)
+        cells += [_stats(t, 3), _stats(r, 2)]
+    ate = {"odometry": check.umeyama_rmse(metric.poses.positions, truth.positions)}
+    for model, graph in [
+        *graphs.items(),
+        ("oracle", dataclasses.replace(metric, loop_edges=oracle)),
+    ]:
+        ate[model] = check.umeyama_rmse(optimize_pose_graph(graph).positions, truth.positions)
+    models = ", ".join(f"{n} {m}" for m, n in metric.loop_models.items())
+    return (
+        f"| {name} | {models} | "
+        + " | ".join(cells)
+        + " | "
+        + " | ".join(f"{ate[k]:.3f}" for k in ("odometry", "placeholder", "metric", "oracle"))
+        + f" | {ate['metric'] / ate['oracle']:.2f} |"
+    )
+
+
+def metric_table() -> None:
+    print(
+        "| drive | loop edges (metric model) | placeholder t err, m | placeholder r err, deg "
+        "| metric t err, m | metric r err, deg | ATE odometry | ATE placeholder | ATE metric "
+        "| ATE oracle | metric / oracle |"
+    )
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    with tempfile.TemporaryDirectory() as scratch:
+        root = Path(scratch)
+        drifting = [(f"seed {s}", check.generate_drifting_drive(root, s)) for s in (29, 2, 20)]
+        depth = [("seed 29 with depth", generate_depth_drive(root, 29))]
+        for k, (name, log) in enumerate(drifting + depth + COMMITTED):
+            annotated = root / f"annotated{k}.mcap"
+            if cli_main(["annotate", str(log), "-o", str(annotated)]) != 0:
+                raise RuntimeError(f"annotate {log} failed")
+            print(metric_row(name, annotated), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--wrong", type=int, default=5, help="wrong loop edges to inject")
+    parser.add_argument("--metric", action="store_true", help="issue #20's table instead")
     args = parser.parse_args()
+    if args.metric:
+        metric_table()
+        return
     graphs = []
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)

@@ -218,6 +218,9 @@ class FrameRef:
 
 NAN4 = (math.nan,) * 4
 NAN3 = (math.nan,) * 3
+NAN36 = (math.nan,) * 36
+# A loop closure's `metric_method` (schemas/*/LoopClosure; "" none, or not recorded).
+DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY, NO_METRIC = "depth_pnp", "odometry_pnp", "rotation_only", ""
 
 
 @dataclass(frozen=True)
@@ -257,6 +260,13 @@ class LoopClosureRecord:
     translation_direction: tuple[float, ...] = NAN3
     proposal: int = 0
     proposal_match_index: int = -1  # -1: the match's index (set so by __post_init__)
+    metric_method: str = NO_METRIC
+    metric_translation: tuple[float, ...] = NAN3
+    metric_rotation_xyzw: tuple[float, ...] = NAN4
+    metric_covariance: tuple[float, ...] = NAN36  # 6x6 row-major; +inf: unconstrained
+    metric_inliers: int = -1
+    metric_residual_px: float = math.nan
+    metric_reason: str = ""
 
     def __post_init__(self) -> None:
         if self.refined_match is None:
@@ -275,6 +285,15 @@ class LoopClosureRecord:
         """The match a pose graph should use: the refined one."""
         assert self.refined_match is not None  # __post_init__
         return self.refined_match
+
+    @property
+    def has_metric_translation(self) -> bool:
+        """A metric pose with its translation (depth or odometry PnP), not rotation only."""
+        return self.metric_method in (DEPTH_PNP, ODOMETRY_PNP)
+
+    def metric_covariance_matrix(self) -> npt.NDArray[np.float64]:
+        """`metric_covariance` as the 6x6 matrix (NaN without a metric pose)."""
+        return np.asarray(self.metric_covariance, np.float64).reshape(6, 6)
 
     def to_message(self) -> dict[str, Any]:
         return {
@@ -305,6 +324,13 @@ class LoopClosureRecord:
             "translation_direction": list(self.translation_direction),
             "proposal": self.proposal,
             "proposal_match_index": self.proposal_match_index,
+            "metric_method": self.metric_method,
+            "metric_translation": list(self.metric_translation),
+            "metric_rotation_xyzw": list(self.metric_rotation_xyzw),
+            "metric_covariance": list(self.metric_covariance),
+            "metric_inliers": self.metric_inliers,
+            "metric_residual_px": self.metric_residual_px,
+            "metric_reason": self.metric_reason,
         }
 
     @classmethod
@@ -343,6 +369,13 @@ class LoopClosureRecord:
             translation_direction=_floats(get("translation_direction", NAN3)),
             proposal=int(get("proposal", 0)),
             proposal_match_index=int(get("proposal_match_index", -1)),
+            metric_method=str(get("metric_method", NO_METRIC)),
+            metric_translation=_floats(get("metric_translation", NAN3)),
+            metric_rotation_xyzw=_floats(get("metric_rotation_xyzw", NAN4)),
+            metric_covariance=_floats(get("metric_covariance", NAN36)),
+            metric_inliers=int(get("metric_inliers", -1)),
+            metric_residual_px=optional_float(get("metric_residual_px", math.nan)),
+            metric_reason=str(get("metric_reason", "")),
         )
 
 

@@ -12,11 +12,13 @@ from typing import Any
 
 from ..detector.events import Candidate, SequenceDecision
 from ..verification.geometry import Verdict
+from ..verification.metric_pose import MetricPose
 from ..verification.stage import PairCheck, VerifiedDecision
 from .records import (
     ACCEPTED,
     NAN3,
     NAN4,
+    NO_METRIC,
     OFF,
     REJECTED,
     SKIPPED,
@@ -30,6 +32,9 @@ from .records import (
 
 # sequence id -> its verification; None for a run without verification (--no-verify).
 Verifications = Mapping[int, VerifiedDecision] | None
+# (sequence id, pair number in its decision) -> the accepted pair's metric pose, or why it has
+# none; None for a run without them (--no-verify).
+MetricPoses = Mapping[tuple[int, int], MetricPose | str] | None
 
 _MODEL_NAMES = {"F": "fundamental", "E": "essential"}
 
@@ -40,10 +45,12 @@ def loop_closure_messages(
     method: str,
     parameters_hash: str,
     verifications: Verifications = None,
+    metric: MetricPoses = None,
 ) -> list[TimedMessage]:
     """One `LoopClosure` message per pair of an accepted decision, with the query's log time.
 
-    With `verifications`, each pair carries its check (rejected pairs included, marked so).
+    With `verifications`, each pair carries its check (rejected pairs included, marked so);
+    with `metric`, each accepted pair its metric pose (or why it has none).
 
     Raises ValueError when a decision names a frame outside `frame_times` or another method,
     or a decision has no verification in `verifications`.
@@ -61,6 +68,7 @@ def loop_closure_messages(
                 **_pair_values(decision, pair, match_bounds, frame_times, parameters_hash),
                 **_verification_values(pair, check, frame_times),
                 **_proposal_values(decision, z, check),
+                **_metric_values(None if metric is None else metric.get((decision.sequence_id, z))),
             )
             messages.append(TimedMessage(record, record.query.log_time_ns))
     return messages
@@ -142,6 +150,25 @@ def _proposal_values(decision: SequenceDecision, z: int, check: PairCheck | None
     if proposal:
         match = decision.alternatives[proposal - 1].match_indices[z]
     return {"proposal": proposal, "proposal_match_index": match}
+
+
+def _metric_values(metric: MetricPose | str | None) -> dict[str, Any]:
+    """The metric fields of a pair: its pose, or "none" and why (a string); nothing (the
+    "not recorded" values) for a pair without an entry (not accepted, or --no-verify)."""
+    if metric is None:
+        return {}
+    if isinstance(metric, str):
+        return {"metric_method": NO_METRIC, "metric_reason": metric}
+    translation = metric.translation
+    return {
+        "metric_method": metric.method,
+        "metric_translation": NAN3 if translation is None else tuple(float(v) for v in translation),
+        "metric_rotation_xyzw": tuple(float(v) for v in metric.rotation_xyzw),
+        "metric_covariance": tuple(float(v) for v in metric.covariance.reshape(36)),
+        "metric_inliers": int(metric.inliers),
+        "metric_residual_px": float(metric.rms_px),
+        "metric_reason": metric.reason,
+    }
 
 
 def sequence_messages(

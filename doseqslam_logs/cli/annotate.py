@@ -119,6 +119,13 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
         action="store_false",
         help="leave out the channels Foxglove draws (match images, image texts, 3-D lines)",
     )
+    parser.add_argument(
+        "--odometry-topic",
+        metavar="TOPIC",
+        help="with verification: the pose topic whose odometry gives accepted pairs a metric "
+        "pose when the log has no depth topic (default: the first nav_msgs/Odometry topic; "
+        "'none': no odometry, rotation only)",
+    )
     add_parameter_options(parser)
     add_verification_options(parser)
 
@@ -151,6 +158,7 @@ def annotate_options_from_args(args: argparse.Namespace, workers: int) -> Annota
         max_pixels=args.max_pixels,
         visualization=args.visualization,
         output_format=OutputFormat(args.compression, args.chunk_size),
+        odometry_topic="" if args.odometry_topic == "none" else args.odometry_topic,
     )
 
 
@@ -178,6 +186,9 @@ def summary_line(result: AnnotateResult) -> str:
         model = pose if verification.intrinsics else "fundamental matrix, no intrinsics"
         checked = verification_summary(stats, verification.wall_s, model)
         notes.insert(0, f"verified {stats.candidates} candidate pairs: {checked}")
+        if verification.metric is not None:
+            metric = verification.metric.stats
+            notes.insert(1, f"metric poses of {metric.summary()}, {metric.wall_s:.1f} s")
     if result.health is not None and result.health.poor:
         notes.append(f"WARNING: {result.health.note()}")
     return (

@@ -13,7 +13,11 @@ import sys
 from pathlib import Path
 
 from ..export import FORMATS, ExportOptions, export_log
-from ..export.base import DEFAULT_LOOP_ROTATION_SIGMA_DEG, DEFAULT_LOOP_TRANSLATION_SIGMA_M
+from ..export.base import (
+    DEFAULT_LOOP_ROTATION_SIGMA_DEG,
+    DEFAULT_LOOP_TRANSLATION_SIGMA_M,
+    LOOP_MODELS,
+)
 from .annotate import positive_int
 
 
@@ -90,6 +94,13 @@ def add_pose_graph_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="g2o: identity rotation on every loop edge, even when verification recorded one",
     )
+    parser.add_argument(
+        "--loop-model",
+        choices=LOOP_MODELS,
+        default="metric",
+        help="loop edges: the metric pose recorded on the pair, the placeholder model where "
+        "none was (metric, the default), or the placeholder model for every edge",
+    )
 
 
 def _options(args: argparse.Namespace) -> ExportOptions:
@@ -101,6 +112,7 @@ def _options(args: argparse.Namespace) -> ExportOptions:
         loop_translation_sigma_m=args.loop_translation_sigma,
         loop_rotation_sigma_deg=args.loop_rotation_sigma,
         use_verified_rotation=not args.identity_loop_rotation,
+        loop_model=args.loop_model,
     )
 
 

@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         loop_translation_sigma_m=args.loop_translation_sigma,
         loop_rotation_sigma_deg=args.loop_rotation_sigma,
         use_verified_rotation=not args.identity_loop_rotation,
+        loop_model=args.loop_model,
     )
     optimize_options = OptimizeOptions(
         loop_kernel=args.loop_kernel,

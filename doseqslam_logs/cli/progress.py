@@ -9,6 +9,7 @@ from typing import TextIO
 # What each stage after the replay shows (the replay shows its frames).
 STAGE_LINES = {
     "verify": "verifying the candidate pairs geometrically",
+    "metric": "metric poses of the accepted pairs",
     "write": "writing the output",
 }
 

@@ -6,6 +6,7 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from ..annotations.reader import AnnotatedLog
 
@@ -13,6 +14,10 @@ from ..annotations.reader import AnnotatedLog
 # far apart the two cameras were, so its translation is weak and its rotation firmer.
 DEFAULT_LOOP_TRANSLATION_SIGMA_M = 3.0
 DEFAULT_LOOP_ROTATION_SIGMA_DEG = 10.0
+# "metric": a loop edge uses the metric pose recorded on its pair (issue #20), the placeholder
+# where none was recorded; "placeholder": the placeholder model for every edge.
+LoopModel = Literal["metric", "placeholder"]
+LOOP_MODELS: tuple[LoopModel, ...] = ("metric", "placeholder")
 
 
 @dataclass(frozen=True)
@@ -26,6 +31,7 @@ class ExportOptions:
     loop_translation_sigma_m: float = DEFAULT_LOOP_TRANSLATION_SIGMA_M
     loop_rotation_sigma_deg: float = DEFAULT_LOOP_ROTATION_SIGMA_DEG
     use_verified_rotation: bool = True  # g2o: a verified pair's relative rotation, if recorded
+    loop_model: LoopModel = "metric"  # g2o/optimize: loop edges' measurement (LOOP_MODELS)
 
     @property
     def loop_rotation_sigma_rad(self) -> float:

@@ -4,11 +4,14 @@
     EDGE_SE3:QUAT id1 id2 x y z qx qy qz qw I11 I12 .. I16 I22 .. I66
     FIX id
 
-The file starts with `#` comment lines stating the loop edges' measurement model (a
-placeholder, docs/export.md); g2o and GTSAM's readG2o skip them. Vertex ids are frame indices.
-Odometry edges come first, then loop edges (in log order). The information is the upper
-triangle of the 6 x 6 matrix, row by row. `FIX` holds the first vertex in g2o; GTSAM's readG2o
-ignores it (add a prior there).
+The file starts with `#` comment lines stating the loop edges' measurement model (the metric
+pose recorded on the pair, else the placeholder; docs/export.md); g2o and GTSAM's readG2o skip
+them. g2o needs a positive definite information matrix: a rotation-only loop edge (zero
+information on its translation in GTSAM terms) gets G2O_UNCONSTRAINED_INFORMATION on the
+translation diagonal instead, with a zero translation that it leaves free. Vertex ids are
+frame indices. Odometry edges come first, then loop edges (in log order). The information is
+the upper triangle of the 6 x 6 matrix, row by row. `FIX` holds the first vertex in g2o;
+GTSAM's readG2o ignores it (add a prior there).
 """
 
 from __future__ import annotations
@@ -18,11 +21,18 @@ from collections.abc import Iterable, Iterator
 import numpy as np
 
 from ..annotations.reader import AnnotatedLog
+from ..annotations.records import ROTATION_ONLY
 from ..errors import UsageError
 from .base import Exporter, ExportOptions, ExportResult
 from .pose_graph import Edge, PoseGraph, build_pose_graph
 
 _UPPER = np.triu_indices(6)
+_INFORMATION_LINE = (
+    "# Information: upper triangle of the 6 x 6 matrix over x, y, z, rot x, rot y, rot z.\n"
+)
+# Information per m^2 standing for "unconstrained" on a rotation-only edge's translation axes
+# (a sigma of 1 km): g2o refuses a singular matrix; the zero translation then weighs nothing.
+G2O_UNCONSTRAINED_INFORMATION = 1e-6
 
 
 def _numbers(values: Iterable[float]) -> str:
@@ -31,12 +41,39 @@ def _numbers(values: Iterable[float]) -> str:
 
 def edge_line(edge: Edge) -> str:
     measurement = _numbers([*edge.translation, *edge.quaternion_xyzw])
-    information = _numbers(edge.information[_UPPER])
+    matrix = edge.information
+    if edge.model == ROTATION_ONLY:
+        matrix = matrix.copy()
+        matrix[:3, :3] = np.diag([G2O_UNCONSTRAINED_INFORMATION] * 3)
+    information = _numbers(matrix[_UPPER])
     return f"EDGE_SE3:QUAT {edge.from_id} {edge.to_id} {measurement} {information}\n"
 
 
-def header_lines(options: ExportOptions) -> list[str]:
-    """`#` lines: the loop edges are a placeholder model, not a measured relative pose."""
+def header_lines(options: ExportOptions, graph: PoseGraph | None = None) -> list[str]:
+    """`#` lines: the loop edges' measurement models (metric, placeholder) and their counts."""
+    if options.loop_model == "metric":
+        models = {} if graph is None else graph.loop_models
+        counts = ", ".join(f"{n} {model}" for model, n in models.items()) or "none"
+        return [
+            "# doseqslam-logs pose graph. Loop edges (EDGE_SE3:QUAT after the odometry edges)\n",
+            f"# by model: {counts} (docs/export.md):\n",
+            "#   depth_pnp, odometry_pnp: the metric pose recorded on the pair, information =\n",
+            "#     its inverse covariance, in body axes (x forward, y left, z up)\n",
+            "#   rotation_only: its rotation; translation unconstrained (zero in GTSAM terms),\n",
+            f"#     written as zero with information {G2O_UNCONSTRAINED_INFORMATION:g} per m^2 "
+            "(g2o needs a positive definite matrix)\n",
+            *_placeholder_lines(options, "#   placeholder (no metric pose recorded): "),
+            _INFORMATION_LINE,
+        ]
+    return [
+        "# doseqslam-logs pose graph. Loop edges (EDGE_SE3:QUAT after the odometry edges) use a\n",
+        "# placeholder measurement model, not a measured relative pose (docs/export.md):\n",
+        *_placeholder_lines(options, "#   "),
+        _INFORMATION_LINE,
+    ]
+
+
+def _placeholder_lines(options: ExportOptions, prefix: str) -> list[str]:
     if options.use_verified_rotation:
         rotation = "from geometric verification when recorded, else identity"
     else:
@@ -44,16 +81,13 @@ def header_lines(options: ExportOptions) -> list[str]:
     translation_sigma = f"{options.loop_translation_sigma_m:g} m"
     rotation_sigma = f"{options.loop_rotation_sigma_deg:g} deg"
     return [
-        "# doseqslam-logs pose graph. Loop edges (EDGE_SE3:QUAT after the odometry edges) use a\n",
-        "# placeholder measurement model, not a measured relative pose (docs/export.md):\n",
-        f"#   translation: zero, low information (sigma {translation_sigma} on x, y, z)\n",
-        f"#   rotation: {rotation} (sigma {rotation_sigma} on each axis)\n",
-        "# Information: upper triangle of the 6 x 6 matrix over x, y, z, rot x, rot y, rot z.\n",
+        f"{prefix}translation: zero, low information (sigma {translation_sigma} on x, y, z)\n",
+        f"{prefix}rotation: {rotation} (sigma {rotation_sigma} on each axis)\n",
     ]
 
 
 def g2o_lines(graph: PoseGraph, options: ExportOptions) -> Iterator[str]:
-    yield from header_lines(options)
+    yield from header_lines(options, graph)
     for k, vertex_id in enumerate(graph.vertex_ids):
         pose = [*graph.poses.positions[k], *graph.poses.quaternions_xyzw[k]]
         yield f"VERTEX_SE3:QUAT {vertex_id} {_numbers(pose)}\n"

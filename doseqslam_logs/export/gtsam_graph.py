@@ -177,9 +177,11 @@ class OptimizedGraph:
     def summary(self, graph: PoseGraph) -> str:
         """E.g. '240 vertices, 239 odometry edges, 65 loop edges; 12 iterations, error
         1520.3 -> 20.1; loop edges: 64 kept, 1 rejected by the outlier check'."""
+        models = ", ".join(f"{n} {model}" for model, n in graph.loop_models.items())
         return (
             f"{len(self.vertex_ids)} vertices, {len(graph.odometry_edges)} odometry edges, "
-            f"{len(graph.loop_edges)} loop edges; {self.iterations} iterations, "
+            f"{len(graph.loop_edges)} loop edges{f' ({models})' if models else ''}; "
+            f"{self.iterations} iterations, "
             f"error {self.error_before:.6g} -> {self.error_after:.6g}; loop edges: "
             f"{self.loop_edges_kept} kept, {len(self.rejected_loop_edges)} rejected by the "
             "outlier check"

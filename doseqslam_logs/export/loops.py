@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 from ..annotations.reader import AnnotatedLog
 from ..annotations.records import (
+    NO_METRIC,
     NOT_RECORDED,
     REJECTED,
     SKIPPED,
@@ -24,6 +25,17 @@ from ..errors import SourceError
 
 ROTATION_COLUMNS = ("rotation_qx", "rotation_qy", "rotation_qz", "rotation_qw")
 DIRECTION_COLUMNS = ("translation_dx", "translation_dy", "translation_dz")
+METRIC_TRANSLATION_COLUMNS = ("metric_tx", "metric_ty", "metric_tz")
+METRIC_ROTATION_COLUMNS = ("metric_qx", "metric_qy", "metric_qz", "metric_qw")
+# Square roots of the covariance's diagonal (m, rad); None where unconstrained or absent.
+METRIC_SIGMA_COLUMNS = (
+    "metric_sigma_x",
+    "metric_sigma_y",
+    "metric_sigma_z",
+    "metric_sigma_rx",
+    "metric_sigma_ry",
+    "metric_sigma_rz",
+)
 
 COLUMNS = (
     "query_index",
@@ -47,6 +59,17 @@ COLUMNS = (
     # quaternion, and the unit direction of t (its scale is unknown).
     *ROTATION_COLUMNS,
     *DIRECTION_COLUMNS,
+    # The metric relative pose (same convention, t in metres; docs/export.md): the method
+    # ("depth_pnp" | "odometry_pnp" | "rotation_only"; "" none; None: not recorded), t
+    # (None for rotation_only), R, sigmas, PnP inliers, RMS residual (px), and why a better
+    # method was not used.
+    "metric_method",
+    *METRIC_TRANSLATION_COLUMNS,
+    *METRIC_ROTATION_COLUMNS,
+    *METRIC_SIGMA_COLUMNS,
+    "metric_inliers",
+    "metric_residual_px",
+    "metric_reason",
 )
 
 
@@ -104,6 +127,31 @@ def _verification_fields(log: AnnotatedLog, lc: LoopClosureRecord) -> dict[str, 
     }
 
 
+def _metric_fields(lc: LoopClosureRecord) -> dict[str, Any]:
+    """The metric columns; None in each for a pair with nothing recorded (older logs, pairs
+    that are not accepted); the method "" and its reason for an accepted pair without one."""
+    if lc.metric_method == NO_METRIC and not lc.metric_reason:
+        names = ("metric_method", "metric_inliers", "metric_residual_px", "metric_reason")
+        columns = (*METRIC_TRANSLATION_COLUMNS, *METRIC_ROTATION_COLUMNS, *METRIC_SIGMA_COLUMNS)
+        return dict.fromkeys((*names, *columns))
+    variances = np.diagonal(lc.metric_covariance_matrix())
+    sigmas = [math.sqrt(v) if math.isfinite(v) and v >= 0 else None for v in variances]
+    return {
+        "metric_method": lc.metric_method,
+        **_spread_finite(METRIC_TRANSLATION_COLUMNS, lc.metric_translation),
+        **_spread_finite(METRIC_ROTATION_COLUMNS, lc.metric_rotation_xyzw),
+        **dict(zip(METRIC_SIGMA_COLUMNS, sigmas, strict=True)),
+        "metric_inliers": lc.metric_inliers if lc.metric_method else None,
+        "metric_residual_px": _finite(lc.metric_residual_px),
+        "metric_reason": lc.metric_reason,
+    }
+
+
+def _spread_finite(names: tuple[str, ...], values: tuple[float, ...]) -> dict[str, Any]:
+    finite = len(values) == len(names) and all(math.isfinite(v) for v in values)
+    return _spread(names, values if finite else None)
+
+
 def _spread(names: tuple[str, ...], values: tuple[float, ...] | None) -> dict[str, Any]:
     """A vector field as one column per component; None in each when absent or malformed."""
     if values is None or len(values) != len(names):
@@ -127,6 +175,7 @@ def loop_closure_row(log: AnnotatedLog, lc: LoopClosureRecord) -> dict[str, Any]
         "method": lc.method,
         "parameters_hash": lc.parameters_hash,
         **_verification_fields(log, lc),
+        **_metric_fields(lc),
     }
     return {column: row[column] for column in COLUMNS}
 

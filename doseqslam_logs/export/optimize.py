@@ -57,6 +57,7 @@ class OptimizeResult:
             "vertices": len(self.graph.vertex_ids),
             "odometry_edges": len(self.graph.odometry_edges),
             "loop_edges": len(self.graph.loop_edges),
+            "loop_edges_by_model": self.graph.loop_models,
             "iterations": optimized.iterations,
             "rounds": optimized.rounds,
             "error_before": optimized.error_before,

@@ -10,7 +10,12 @@ docs/export.md describes the measurement model; in short:
   g2o information) times the number of frames the edge spans; `DEFAULT_ODOMETRY_SIGMAS` when
   the messages carry no covariance, an all-zero one, or one that is not positive definite.
 * Loop edges, query vertex -> matched vertex (the refined match when verification recorded
-  one): identity relative pose, translation sigma `loop_translation_sigma_m` on each axis
+  one). With `loop_model` "metric" (the default) and a metric pose recorded on the pair
+  (`metric_method`, issue #20): that pose, inverted (the match camera in the query camera's
+  frame) and turned from optical into body axes, with the inverse of its covariance turned
+  the same way (`metric_loop_edge`); a "rotation_only" pose gives zero information on the
+  translation axes (a rotation-only factor). Otherwise, and always with "placeholder":
+  identity relative pose, translation sigma `loop_translation_sigma_m` on each axis
   (low information: the two cameras saw the same place, from an unknown distance), rotation
   sigma `loop_rotation_sigma_deg`. A placeholder for a geometric measurement. When
   verification recorded the pair's relative rotation, that rotation (camera optical axes
@@ -32,9 +37,11 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..annotations.reader import AnnotatedLog
-from ..annotations.records import LoopClosureRecord
+from ..annotations.records import DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY, LoopClosureRecord
 from ..errors import SourceError
 from ..sources.poses import PoseTrack, read_poses
+from ..verification.metric_pose import OPTICAL_TO_BODY as OPTICAL_TO_BODY
+from ..verification.metric_pose import MetricPose
 from .base import ExportOptions
 from .loops import frame_times_ns
 
@@ -48,10 +55,11 @@ DEFAULT_ODOMETRY_SIGMAS = (0.1, 0.1, 0.1, 0.02, 0.02, 0.02)
 # A variance this large marks an axis the odometry does not measure (ROS: 1e6, 99999).
 UNMEASURED_VARIANCE = 1e3
 
-# Camera optical axes (x right, y down, z forward) in body axes (x forward, y left, z up).
-OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 EdgeKind = Literal["odometry", "loop"]
+# What a loop edge measures: a recorded metric pose (its method), or the placeholder model.
+PLACEHOLDER = "placeholder"
+METRIC_MODELS = (DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY)
 
 
 @dataclass(frozen=True)
@@ -64,6 +72,7 @@ class Edge:
     translation: F64  # (3,)
     quaternion_xyzw: F64  # (4,)
     information: F64  # (6, 6) over x, y, z, rot x, rot y, rot z
+    model: str = ""  # loop edges: PLACEHOLDER or the metric method (METRIC_MODELS)
 
 
 @dataclass(frozen=True)
@@ -79,10 +88,19 @@ class PoseGraph:
     default_information_edges: int  # odometry edges without a usable covariance
 
     @property
+    def loop_models(self) -> dict[str, int]:
+        """Loop edges by model (PLACEHOLDER or a metric method), in a fixed order."""
+        counts = {
+            m: sum(e.model == m for e in self.loop_edges) for m in (*METRIC_MODELS, PLACEHOLDER)
+        }
+        return {model: n for model, n in counts.items() if n}
+
+    @property
     def summary(self) -> str:
+        models = ", ".join(f"{n} {model}" for model, n in self.loop_models.items())
         text = (
             f"{len(self.vertex_ids)} vertices, {len(self.odometry_edges)} odometry edges, "
-            f"{len(self.loop_edges)} loop edges"
+            f"{len(self.loop_edges)} loop edges{f' ({models})' if models else ''}"
         )
         notes = []
         if self.frames_outside_odometry:
@@ -237,6 +255,87 @@ def verified_body_rotation(loop_closure: LoopClosureRecord) -> F64 | None:
 
 
 def _loop_edge(loop_closure: LoopClosureRecord, options: ExportOptions) -> Edge:
+    if options.loop_model == "metric":
+        metric = metric_loop_edge(loop_closure)
+        if metric is not None:
+            return metric
+    return placeholder_loop_edge(loop_closure, options)
+
+
+def metric_loop_edge(loop_closure: LoopClosureRecord) -> Edge | None:
+    """The recorded metric pose as a loop edge (module docstring); None when there is none,
+    or it is not finite or its covariance not positive definite (where constrained)."""
+    method = loop_closure.metric_method
+    if method not in METRIC_MODELS:
+        return None
+    rotation_xyzw = np.asarray(loop_closure.metric_rotation_xyzw, np.float64)
+    translation = np.asarray(loop_closure.metric_translation, np.float64)
+    has_translation = method != ROTATION_ONLY
+    if not np.isfinite(rotation_xyzw).all() or (
+        has_translation and not np.isfinite(translation).all()
+    ):
+        return None
+    pose = MetricPose(
+        method,  # type: ignore[arg-type]  # one of METRIC_MODELS
+        (
+            float(rotation_xyzw[0]),
+            float(rotation_xyzw[1]),
+            float(rotation_xyzw[2]),
+            float(rotation_xyzw[3]),
+        ),
+        (float(translation[0]), float(translation[1]), float(translation[2]))
+        if has_translation
+        else None,
+        loop_closure.metric_covariance_matrix(),
+        loop_closure.metric_inliers,
+        loop_closure.metric_residual_px,
+    ).match_in_query()
+    match_in_query = _rotation(np.asarray(pose.rotation_xyzw)).as_matrix()
+    # The covariance perturbs the pose about the query camera's axes (R' = exp(w) R, t + dt);
+    # a pose-graph edge (GTSAM, g2o) perturbs it in the match camera's own axes (R exp(w'),
+    # t + R v): w' = R^T w, v = R^T dt; then optical axes into body axes.
+    turn = OPTICAL_TO_BODY @ match_in_query.T
+    information = _information(pose.covariance, turn, has_translation)
+    if information is None:
+        return None
+    body_rotation = OPTICAL_TO_BODY @ match_in_query @ OPTICAL_TO_BODY.T
+    quaternion = _positive_w(np.asarray(Rotation.from_matrix(body_rotation).as_quat(), np.float64))
+    body_translation = np.zeros(3)
+    if pose.translation is not None:
+        body_translation = OPTICAL_TO_BODY @ np.asarray(pose.translation, np.float64)
+    return Edge(
+        "loop",
+        loop_closure.query.index,
+        loop_closure.matched.index,
+        body_translation,
+        quaternion,
+        information,
+        method,
+    )
+
+
+def _information(covariance: F64, turn: F64, has_translation: bool) -> F64 | None:
+    """The inverse of `covariance` (ROS order) with both blocks' axes turned by `turn`; without
+    a translation, its block is left at zero information. None when not positive definite."""
+    jacobian = np.zeros((6, 6))
+    jacobian[:3, :3] = jacobian[3:, 3:] = turn
+    if has_translation:
+        turned = jacobian @ covariance @ jacobian.T
+    else:
+        turned = np.zeros((6, 6))
+        turned[3:, 3:] = turn @ covariance[3:, 3:] @ turn.T
+    block = slice(0, 6) if has_translation else slice(3, 6)
+    constrained = (turned[block, block] + turned[block, block].T) / 2
+    if not np.isfinite(constrained).all() or np.linalg.eigvalsh(constrained).min() <= 0:
+        return None
+    information = np.zeros((6, 6))
+    inverse = np.linalg.inv(constrained)
+    information[block, block] = (inverse + inverse.T) / 2
+    return information
+
+
+def placeholder_loop_edge(loop_closure: LoopClosureRecord, options: ExportOptions) -> Edge:
+    """The placeholder measurement model (module docstring)."""
     quaternion = np.array([0.0, 0.0, 0.0, 1.0])
     if options.use_verified_rotation:
         verified = verified_body_rotation(loop_closure)
@@ -250,4 +349,5 @@ def _loop_edge(loop_closure: LoopClosureRecord, options: ExportOptions) -> Edge:
         np.zeros(3),
         quaternion,
         default_information(sigmas),
+        PLACEHOLDER,
     )

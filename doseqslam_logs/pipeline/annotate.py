@@ -61,13 +61,14 @@ from .decode import (
     decoded_frames,
 )
 from .feature_health import FeatureHealth, check_feasibility, run_feature_health
+from .metric_edges import MetricEdges, metric_edges
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
 HASH_BLOCK = 1 << 20
 
 # The stages of a run, as `annotate_log(stage=...)` announces them when each begins.
-STAGES = ("replay", "verify", "write")
+STAGES = ("replay", "verify", "metric", "write")
 StageCallback = Callable[[str], None]
 
 
@@ -109,6 +110,10 @@ class AnnotateOptions:
     visualization: bool = True
     # The output's chunks: compression and size (`--compression`, `--chunk-size`).
     output_format: OutputFormat = field(default_factory=OutputFormat)
+    # With verification: the pose topic whose odometry gives accepted pairs a metric pose
+    # (pipeline.metric_edges); None the log's first nav_msgs/Odometry topic, "" none
+    # (`--odometry-topic none`).
+    odometry_topic: str | None = None
 
 
 @dataclass(frozen=True)
@@ -146,6 +151,7 @@ class Verification:
     decisions: dict[int, VerifiedDecision]  # by sequence id
     stats: VerificationStats  # seconds summed over the verification threads
     wall_s: float = 0.0  # wall time of the whole stage
+    metric: MetricEdges | None = None  # the accepted pairs' metric poses (the metric stage)
 
     def recorded_in(self, metadata: RunMetadata) -> RunMetadata:
         """The run's metadata with the stage's parameters and outcome; the run reports the
@@ -462,6 +468,19 @@ def _annotate(
     if options.verification is not None:
         _announce(stage, "verify")
     verification = verify_decisions(read_path, topic, result, frame_times, options)
+    if verification is not None:
+        _announce(stage, "metric")
+        verification.metric = metric_edges(
+            read_path,
+            topic,
+            frame_times,
+            verification.decisions,
+            verification.intrinsics,
+            verification.params,
+            time_source=options.time_source,
+            odometry_topic=options.odometry_topic,
+            max_pixels=options.max_pixels,
+        )
     sha256 = waiting.result(digest)
     metadata = run_metadata(
         params, result, counts, log, sha256, topic, options, recovery, promise, unattributed
@@ -479,6 +498,7 @@ def _annotate(
         params.hash,
         metadata.to_entries(),
         None if verification is None else verification.decisions,
+        None if verification is None or verification.metric is None else verification.metric.poses,
     )
     if options.visualization and not options.sidecar:
         annotations = replace(

@@ -205,10 +205,12 @@ class JsonEncoder(MessageEncoder):
 
     def encode(self, message_type: MessageType, fields: Mapping[str, Any]) -> bytes:
         check_fields(message_type.name, self.properties[message_type.name], fields)
-        ordered = {name: fields[name] for name in self.properties[message_type.name]}
-        # allow_nan=False: NaN is not JSON; without_nan already left it out.
-        text = json.dumps(without_nan(ordered), allow_nan=False, separators=(",", ":"))
-        return text.encode()
+        ordered = without_nan({name: fields[name] for name in self.properties[message_type.name]})
+        if not any(_holds_infinity(value) for value in ordered.values()):
+            # allow_nan=False: NaN is not JSON; without_nan already left it out.
+            return json.dumps(ordered, allow_nan=False, separators=(",", ":")).encode()
+        items = (f"{json.dumps(name)}:{_json_value(value)}" for name, value in ordered.items())
+        return ("{" + ",".join(items) + "}").encode()
 
 
 def without_nan(message: Mapping[str, Any]) -> dict[str, Any]:
@@ -222,11 +224,34 @@ def without_nan(message: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _holds_nan(value: Any) -> bool:
+    """NaN anywhere, or an infinite float outside an array (only a float array, the
+    covariance's unconstrained variances, keeps its infinities: `_json_value`)."""
     if isinstance(value, float):
         return not math.isfinite(value)
     if isinstance(value, (list, tuple)):
-        return any(isinstance(item, float) and not math.isfinite(item) for item in value)
+        return any(isinstance(item, float) and math.isnan(item) for item in value)
     return False
+
+
+def _holds_infinity(value: Any) -> bool:
+    return isinstance(value, (list, tuple)) and any(
+        isinstance(item, float) and math.isinf(item) for item in value
+    )
+
+
+def _json_value(value: Any) -> str:
+    """A value as compact JSON, an infinite float in an array as the number 1e999: JSON's
+    grammar has no infinity, but any exponent, and JSON parsers (Python's json, JavaScript's
+    JSON.parse) read 1e999 as infinity; `records` reads it back so."""
+    if not _holds_infinity(value):
+        return json.dumps(value, allow_nan=False, separators=(",", ":"))
+    return "[" + ",".join(_json_float(item) for item in value) + "]"
+
+
+def _json_float(item: Any) -> str:
+    if isinstance(item, float) and math.isinf(item):
+        return "1e999" if item > 0 else "-1e999"
+    return json.dumps(item, allow_nan=False)
 
 
 ENCODERS: dict[str, type[MessageEncoder]] = {

@@ -41,7 +41,12 @@ from ..annotations.records import (
     MessageType,
     TimedMessage,
 )
-from ..annotations.writer import Verifications, loop_closure_messages, sequence_messages
+from ..annotations.writer import (
+    MetricPoses,
+    Verifications,
+    loop_closure_messages,
+    sequence_messages,
+)
 from ..detector.events import SequenceDecision
 from ..errors import DoseqslamError, OutputError, SourceError
 from ..sources import (
@@ -90,15 +95,16 @@ class Annotations:
         parameters_hash: str,
         metadata: Mapping[str, str],
         verifications: Verifications = None,
+        metric: MetricPoses = None,
     ) -> Annotations:
         """Loop-closure and sequence messages for these `SequenceDecision`s (and their
-        verification, None when it was off).
+        verification and metric poses, None when it was off).
 
         Raises ValueError when a decision names a frame outside `frame_times`.
         """
         v = verifications
         messages = [
-            *loop_closure_messages(decisions, frame_times, method, parameters_hash, v),
+            *loop_closure_messages(decisions, frame_times, method, parameters_hash, v, metric),
             *sequence_messages(decisions, frame_times, method, parameters_hash, v),
         ]
         return cls(messages, metadata, frame_times)

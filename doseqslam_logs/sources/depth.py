@@ -10,7 +10,10 @@ the container.
 `find_depth_topic` picks, among the raw-image topics whose first message has a depth encoding,
 the one sharing the longest topic prefix with the image topic (/camera/image/compressed ->
 /camera/depth/image), as the camera's CameraInfo is picked (`camera_info`). `read_depth` reads
-the depth nearest each wanted stamp in one pass, keeping at most one image per wanted stamp.
+the depth nearest each wanted stamp in one pass, keeping at most one image per wanted stamp;
+`stream_depth` hands each one on as soon as no later message can be nearer, so that a caller
+that uses and drops them (annotate's metric stage) holds a few images at a time, whatever the
+log's length.
 """
 
 from __future__ import annotations
@@ -191,6 +194,52 @@ def read_depth(
             continue
         found.images[target] = DepthImage(stamp, metres)
     return found
+
+
+def stream_depth(
+    source: Source,
+    topic: str,
+    wanted_stamps_ns: Iterable[int],
+    found: DepthFrames,
+    *,
+    tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    size: tuple[int, int] | None = None,
+) -> Iterator[tuple[int, DepthImage]]:
+    """(wanted stamp, its nearest depth image) in one pass over the topic, as `read_depth`
+    chooses them, each yielded once a message stamped more than `tolerance_ns` after the wanted
+    stamp has been read (or at the end): only the images still within the tolerance of a
+    message are held. Messages are counted and skipped ones recorded in `found`, whose
+    `images` stays empty. Assumes stamps ascend with log time within the tolerance (an image
+    stamped further out of order than that is not a candidate any more).
+
+    Raises SourceError as `read_depth`.
+    """
+    wanted = np.unique(np.fromiter(wanted_stamps_ns, dtype=np.int64))
+    pending: dict[int, DepthImage] = {}
+    done: set[int] = set()
+    for rec, decoded in _records(source, topic):
+        found.messages += 1
+        image = _image_message(decoded, rec)
+        stamp = image.header_stamp_ns or rec.log_time_ns
+        for passed in sorted(t for t in pending if t + tolerance_ns < stamp):
+            done.add(passed)
+            yield passed, pending.pop(passed)
+        target = _nearest(wanted, stamp, tolerance_ns)
+        if target is None or target in done:
+            continue
+        kept = pending.get(target)
+        if kept is not None and abs(kept.stamp_ns - target) <= abs(stamp - target):
+            continue
+        try:
+            metres = depth_metres(image, max_pixels)
+            _check_size(image, size)
+        except ImageDecodeError as error:
+            found.skip(error)
+            continue
+        pending[target] = DepthImage(stamp, metres)
+    for target in sorted(pending):
+        yield target, pending[target]
 
 
 def _records(source: Source, topic: str) -> Iterator[tuple[RecordInfo, DecodedMessage]]:

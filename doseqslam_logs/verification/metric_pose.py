@@ -56,6 +56,11 @@ F64 = npt.NDArray[np.float64]
 DepthImage = npt.NDArray[np.float32]
 Method = Literal["depth_pnp", "odometry_pnp", "rotation_only"]
 
+# Camera optical axes (x right, y down, z forward) in body axes (x forward, y left, z up): a
+# camera looking along its body's x axis, the convention of the pose graph and of turning
+# odometry body poses into camera poses (no tf is read).
+OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
 _FIT_SEED = 0
 _JACOBIAN_STEP = 1e-6  # metres and radians: central differences of the reprojection
 

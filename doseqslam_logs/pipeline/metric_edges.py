@@ -1,0 +1,427 @@
+"""The metric stage of a run (issue #20): a metric relative pose for each accepted pair.
+
+After verification, each accepted pair (query, refined match) gets the best rung of
+`verification.metric_pose` the log allows: the match's aligned depth image when the log has a
+depth topic (`sources.depth.find_depth_topic`), else neighbours of the match with their
+relative pose from an odometry topic (the first nav_msgs/Odometry, or `--odometry-topic`),
+else the essential fit's rotation (none without intrinsics). The pose and, when a better rung
+failed, why, go on the pair's LoopClosure message (`annotations.writer`).
+
+Odometry poses are body poses of the camera (x forward, y left, z up) turned into optical
+axes with `OPTICAL_TO_BODY`: the camera is assumed to look along the body's x axis at the
+pose's origin (no tf is read). Neighbours of a match are chosen as `tools/metric_edges.py`
+measured them: on each side, the nearest frame whose odometry is at least 1 m, and 2 m, away,
+within NEIGHBOUR_REACH_S of the match.
+
+Features of the fit: SIFT on frames shrunk to the verification's working size
+(`image_max_side`): the run's ORB missed the accuracy target (median 0.22 m against 0.10 m
+with SIFT, docs/export.md). A fit costs ~0.45 s at 640x480 (SIFT on up to six frames: query,
+match, neighbours), so at high frame rates (the pairs of a sequence with more than one frame
+per the verification's `query_interval_s`, as its query stride) at most one pair per
+`METRIC_INTERVAL_S` of query time gets a metric fit: near-copy pairs add edges, not
+information, to a pose graph, and the stage then costs about 15 % of the run on a 10 Hz
+640x480 drive (docs/export.md). The others record no metric pose and say why (their
+essential-fit rotation stays on the message, as for every accepted pair). At 2 Hz every
+accepted pair is fitted.
+
+Memory is bounded whatever the log's length: the depth topic is read once, each image used
+and dropped as it arrives (`stream_depth`); frames are re-read through `LogFrameReader` and
+their features kept in a `FeatureCache` bounded in bytes. It runs on the calling (main)
+thread, so Ctrl-C and SIGTERM stop it between two pairs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Final
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from ..annotations.records import FrameTimes
+from ..errors import SourceError
+from ..sources import open_source
+from ..sources.depth import DepthFrames, find_depth_topic, stream_depth
+from ..sources.image_header import DEFAULT_MAX_PIXELS
+from ..sources.poses import ODOMETRY, PoseTrack, canonical_type, read_poses
+from ..verification.geometry import FrameFeatures, Intrinsics, Verdict, extract_features
+from ..verification.metric_pose import (
+    OPTICAL_TO_BODY,
+    MetricPose,
+    MetricPoseParameters,
+    OdometryNeighbour,
+    metric_pose,
+)
+from ..verification.params import VerificationParameters
+from ..verification.stage import FeatureCache, VerifiedDecision, query_stride
+from .reread import LogFrameReader
+
+F64 = npt.NDArray[np.float64]
+PairKey = tuple[int, int]  # (sequence id, pair number in its decision)
+
+# The features of the metric fit (module docstring).
+METRIC_FEATURES: Final = "sift"
+# At a high frame rate, at most one metric fit per this much query time (module docstring).
+METRIC_INTERVAL_S: Final = 20.0
+# Neighbours of a match: the nearest frame on each side at least each baseline away by the
+# odometry, within this much time of the match (tools/metric_edges.py: 8 frames at 2 Hz).
+NEIGHBOUR_BASELINES_M: Final = (1.0, 2.0)
+NEIGHBOUR_REACH_S: Final = 4.0
+# The odometry's error per metre of baseline (metres, degrees), on every axis: measured on the
+# samples' and drifting drives' odometry (docs/export.md, "Metric loop edges").
+ODOMETRY_SIGMA_PER_M: Final = (0.03, 0.15)
+FEATURE_CACHE_BYTES: Final = 64 * 2**20
+
+NO_INTRINSICS = "no intrinsics (no CameraInfo and no --intrinsics)"
+NO_ROTATION = "no rotation from the essential fit"
+
+
+@dataclass(frozen=True)
+class AcceptedPair:
+    key: PairKey
+    query: int
+    match: int  # the refined match
+    query_time_ns: int
+    verdict: Verdict
+    high_rate: bool  # its sequence has more than one frame per query_interval_s
+
+
+@dataclass
+class MetricStats:
+    """What the stage did and what it cost."""
+
+    pairs: int = 0  # accepted pairs
+    fitted: int = 0  # pairs given a metric fit (the others: not fitted at a high frame rate)
+    methods: Counter[str] = field(default_factory=Counter)  # "" for none
+    depth_topic: str = ""
+    odometry_topic: str = ""
+    depth_messages: int = 0
+    depth_skipped: dict[str, int] = field(default_factory=dict)
+    frames_loaded: int = 0
+    wall_s: float = 0.0
+
+    def summary(self) -> str:
+        """e.g. '50 pairs: 46 odometry_pnp, 4 rotation_only (odometry /odom)'."""
+        counts = ", ".join(f"{n} {m or 'none'}" for m, n in sorted(self.methods.items()))
+        sources = [f"depth {self.depth_topic}"] if self.depth_topic else []
+        sources += [f"odometry {self.odometry_topic}"] if self.odometry_topic else []
+        where = f" ({', '.join(sources)})" if sources else ""
+        return f"{self.pairs} pairs: {counts or 'none'}{where}"
+
+
+@dataclass
+class MetricEdges:
+    """The stage's outcome: each accepted pair's pose, or why it has none, by PairKey."""
+
+    poses: dict[PairKey, MetricPose | str]
+    stats: MetricStats
+
+
+@dataclass(frozen=True)
+class OdometryFrames:
+    """Camera poses (optical axes) from the odometry at every frame's time: X_world = R X + p;
+    `valid` False for a frame outside the odometry's time range."""
+
+    topic: str
+    rotations: Rotation
+    positions: F64
+    valid: npt.NDArray[np.bool_]
+    times_ns: npt.NDArray[np.int64]
+
+    def relative(self, match: int, neighbour: int) -> tuple[Rotation, F64]:
+        """(R, t) with X_neighbour = R X_match + t (the core's `OdometryNeighbour`)."""
+        inverse = self.rotations[neighbour].inv()
+        rotation = inverse * self.rotations[match]
+        translation = inverse.apply(self.positions[match] - self.positions[neighbour])
+        return rotation, np.asarray(translation, np.float64)
+
+    def neighbours(self, match: int) -> list[int]:
+        """On each side of `match`, the nearest frame at least each of NEIGHBOUR_BASELINES_M
+        away, within NEIGHBOUR_REACH_S; none when the match has no odometry."""
+        if not self.valid[match]:
+            return []
+        chosen: list[int] = []
+        for side in (1, -1):
+            frames = list(self._side(match, side))
+            distance = np.linalg.norm(self.positions[frames] - self.positions[match], axis=1)
+            for baseline in NEIGHBOUR_BASELINES_M:
+                far = next((f for f, d in zip(frames, distance, strict=True) if d >= baseline), -1)
+                if far >= 0 and far not in chosen:
+                    chosen.append(far)
+        return chosen
+
+    def _side(self, match: int, side: int) -> Iterator[int]:
+        reach_ns = round(NEIGHBOUR_REACH_S * 1e9)
+        frame = match + side
+        while 0 <= frame < len(self.valid) and self.valid[frame]:
+            if abs(int(self.times_ns[frame]) - int(self.times_ns[match])) > reach_ns:
+                return
+            yield frame
+            frame += side
+
+
+def find_odometry_topic(path: Path) -> str | None:
+    """The log's first nav_msgs/Odometry topic (the order of its channels), None without."""
+    with open_source(path) as source:
+        topics = [c.topic for c in source.channels() if canonical_type(c.message_type) == ODOMETRY]
+    return topics[0] if topics else None
+
+
+def odometry_frames(track: PoseTrack, times_ns: npt.NDArray[np.int64]) -> OdometryFrames:
+    """The odometry at each frame time, as camera poses in optical axes."""
+    first, last = int(track.times_ns[0]), int(track.times_ns[-1])
+    valid = (times_ns >= first) & (times_ns <= last)
+    at = track.interpolate(np.clip(times_ns, first, last))
+    optical = Rotation.from_matrix(OPTICAL_TO_BODY)
+    rotations = Rotation.from_quat(at.quaternions_xyzw) * optical
+    return OdometryFrames(track.topic, rotations, at.positions, valid, times_ns)
+
+
+def odometry_covariance(translation: F64) -> F64:
+    """ODOMETRY_SIGMA_PER_M over a baseline: the error grows with the distance."""
+    distance = float(np.linalg.norm(translation))
+    metres, degrees = ODOMETRY_SIGMA_PER_M
+    sigmas = [metres * distance] * 3 + [math.radians(degrees) * distance] * 3
+    return np.diag(np.square(np.maximum(sigmas, 1e-6)))
+
+
+def accepted_pairs(
+    decisions: Mapping[int, VerifiedDecision],
+    frame_times: FrameTimes,
+    time_source: str,
+    query_interval_s: float,
+) -> list[AcceptedPair]:
+    """The run's accepted pairs, in sequence and pair order."""
+    times = frame_times.detector_times_ns(time_source)
+    pairs = []
+    for sequence_id, verified in sorted(decisions.items()):
+        high_rate = query_stride(verified.decision, query_interval_s) > 1
+        for z, check in enumerate(verified.checks):
+            if check.accepted:
+                query, match = check.candidate.query_index, check.refined_match_index
+                at = int(times[query])
+                pair = AcceptedPair((sequence_id, z), query, match, at, check.verdict, high_rate)
+                pairs.append(pair)
+    return pairs
+
+
+def thinned(pairs: Sequence[AcceptedPair], interval_s: float) -> tuple[list[AcceptedPair], str]:
+    """The pairs to fit: every pair of a sequence at a low frame rate; of the high-rate ones,
+    the first and then each at least `interval_s` of query time after the last fitted one
+    (over the whole run: the cost is then bounded by the log's duration); and the reason the
+    others record."""
+    interval_ns = round(interval_s * 1e9)
+    last: int | None = None
+    chosen = []
+    for pair in pairs:
+        if not pair.high_rate:
+            chosen.append(pair)
+        elif last is None or pair.query_time_ns - last >= interval_ns:
+            last = pair.query_time_ns
+            chosen.append(pair)
+    reason = f"not fitted: at a high frame rate, one metric fit per {interval_s:g} s of query time"
+    return chosen, reason
+
+
+class _Features:
+    """Metric-fit features of frames by index, re-read from the log and cached in bytes."""
+
+    def __init__(self, reader: LogFrameReader, params: VerificationParameters) -> None:
+        self.reader, self.params = reader, params
+        self.cache = FeatureCache(FEATURE_CACHE_BYTES)
+        self.loaded = 0
+        self.shape: tuple[int, ...] | None = None  # (height, width) of the frames decoded
+
+    def __call__(self, indices: Sequence[int]) -> list[FrameFeatures]:
+        missing = sorted({i for i in indices if self.cache.get(i) is None})
+        found = {}
+        for index, gray in self.reader(missing):
+            self.shape = gray.shape
+            found[index] = extract_features(gray, self.params)
+            self.cache.put(index, found[index])
+        self.loaded += len(found)
+        return [found[i] if i in found else self._cached(i) for i in indices]
+
+    def _cached(self, index: int) -> FrameFeatures:
+        features = self.cache.get(index)
+        assert features is not None  # wanted together: the cache holds at least the last one
+        return features
+
+
+@dataclass
+class _Fitter:
+    """Fits one pair at a time (the rungs its inputs allow)."""
+
+    features: _Features
+    intrinsics: Intrinsics
+    odometry: OdometryFrames | None
+    params: MetricPoseParameters = field(default_factory=MetricPoseParameters)
+
+    def fit(
+        self, pair: AcceptedPair, depth: npt.NDArray[np.float32] | None, no_depth: str
+    ) -> MetricPose | str:
+        near = [] if self.odometry is None else self.odometry.neighbours(pair.match)
+        query, match, *others = self.features([pair.query, pair.match, *near])
+        if depth is not None and depth.shape != self.features.shape:
+            # Not registered to the camera's pixels (REP 118 aligns them): no depth rung.
+            sizes = f"{_size(depth.shape)}, the camera's {_size(self.features.shape)}"
+            no_depth = f"depth_pnp: depth image {sizes}"
+            depth = None
+        neighbours = [self._neighbour(pair.match, n, f) for n, f in zip(near, others, strict=True)]
+        verification = self.features.params
+        pose = metric_pose(
+            query,
+            match,
+            pair.verdict,
+            self.intrinsics,
+            verification,
+            self.params,
+            depth=depth,
+            neighbours=neighbours,
+        )
+        if pose is None:
+            return NO_ROTATION
+        # Say why the better rungs were not even tried (the core names those that failed).
+        missing = [no_depth] if depth is None and pose.method != "depth_pnp" else []
+        if not neighbours and pose.method == "rotation_only":
+            missing.append(self._no_odometry())
+        reasons = [r for r in [*missing, *pose.reason.split("; ")] if r]
+        return dataclasses.replace(pose, reason="; ".join(sorted(reasons, key=_rung)))
+
+    def _neighbour(self, match: int, neighbour: int, features: FrameFeatures) -> OdometryNeighbour:
+        assert self.odometry is not None
+        rotation, translation = self.odometry.relative(match, neighbour)
+        q = rotation.as_quat()
+        return OdometryNeighbour(
+            features,
+            (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+            (float(translation[0]), float(translation[1]), float(translation[2])),
+            odometry_covariance(translation),
+        )
+
+    def _no_odometry(self) -> str:
+        if self.odometry is None:
+            return "odometry_pnp: no odometry topic"
+        return "odometry_pnp: no odometry at the match"
+
+
+def metric_edges(
+    read_path: Path,
+    image_topic: str,
+    frame_times: FrameTimes,
+    decisions: Mapping[int, VerifiedDecision],
+    intrinsics: Intrinsics | None,
+    verification: VerificationParameters,
+    *,
+    time_source: str = "header",
+    odometry_topic: str | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    interval_s: float = METRIC_INTERVAL_S,
+    progress: Callable[[int], None] | None = None,
+) -> MetricEdges:
+    """The metric pose of every accepted pair (module docstring). `odometry_topic`: None the
+    first Odometry topic, "" none.
+
+    Raises SourceError when the log cannot be read again.
+    """
+    start = time.perf_counter()
+    pairs = accepted_pairs(decisions, frame_times, time_source, verification.query_interval_s)
+    stats = MetricStats(pairs=len(pairs))
+    if intrinsics is None or not pairs:
+        poses: dict[PairKey, MetricPose | str] = {p.key: NO_INTRINSICS for p in pairs}
+        return _finished(MetricEdges(poses, stats), start)
+    chosen, not_fitted = thinned(pairs, interval_s)
+    poses = {p.key: not_fitted for p in pairs}
+    stats.fitted = len(chosen)
+    odometry = _odometry(read_path, frame_times, time_source, odometry_topic)
+    stats.odometry_topic = "" if odometry is None else odometry.topic
+    params = dataclasses.replace(verification, feature_detector=METRIC_FEATURES)
+    with LogFrameReader(read_path, image_topic, frame_times, max_pixels=max_pixels) as reader:
+        fitter = _Fitter(_Features(reader, params), intrinsics, odometry)
+        for done, (key, pose) in enumerate(_fit_all(read_path, image_topic, chosen, fitter, stats)):
+            poses[key] = pose
+            if progress is not None:
+                progress(done + 1)
+        stats.frames_loaded = fitter.features.loaded
+    return _finished(MetricEdges(poses, stats), start)
+
+
+def _finished(edges: MetricEdges, start: float) -> MetricEdges:
+    edges.stats.methods = Counter(
+        p.method if isinstance(p, MetricPose) else "" for p in edges.poses.values()
+    )
+    edges.stats.wall_s = time.perf_counter() - start
+    return edges
+
+
+def _odometry(
+    read_path: Path, frame_times: FrameTimes, time_source: str, asked: str | None
+) -> OdometryFrames | None:
+    """The odometry at the frames: `asked` (raises SourceError when it cannot be read), else the
+    first Odometry topic (None when there is none or it cannot be read: the run goes on with
+    the other rungs), "" none."""
+    topic = find_odometry_topic(read_path) if asked is None else asked
+    if not topic:
+        return None
+    try:
+        track = read_poses(read_path, topic)
+    except SourceError:
+        if asked is not None:
+            raise
+        return None
+    return odometry_frames(track, frame_times.detector_times_ns(time_source))
+
+
+def _fit_all(
+    read_path: Path,
+    image_topic: str,
+    pairs: Sequence[AcceptedPair],
+    fitter: _Fitter,
+    stats: MetricStats,
+) -> Iterator[tuple[PairKey, MetricPose | str]]:
+    """Each pair's pose: with depth, as the match's depth image arrives (one pass over the
+    depth topic), then the pairs whose match had none; else in pair order."""
+    with open_source(read_path) as source:
+        depth_topic = find_depth_topic(source, image_topic)
+        if depth_topic is None:
+            for pair in pairs:
+                yield pair.key, fitter.fit(pair, None, "depth_pnp: no depth topic")
+            return
+        stats.depth_topic = depth_topic
+        by_stamp: dict[int, list[AcceptedPair]] = {}
+        stamps = fitter.features.reader.times
+        for pair in pairs:
+            by_stamp.setdefault(_stamp(stamps, pair.match), []).append(pair)
+        found = DepthFrames(depth_topic)
+        try:
+            for stamp, image in stream_depth(source, depth_topic, by_stamp, found):
+                for pair in by_stamp.pop(stamp):
+                    yield pair.key, fitter.fit(pair, image.metres, "")
+        finally:
+            stats.depth_messages, stats.depth_skipped = found.messages, found.skipped
+    no_depth = "depth_pnp: no depth image at the match"
+    for left in by_stamp.values():
+        for pair in left:
+            yield pair.key, fitter.fit(pair, None, no_depth)
+
+
+def _rung(reason: str) -> int:
+    """A reason's place in the ladder ("depth_pnp: ..." first), for their order."""
+    return 0 if reason.startswith("depth_pnp") else 1
+
+
+def _size(shape: tuple[int, ...] | None) -> str:
+    return "?" if shape is None else f"{shape[1]}x{shape[0]}"
+
+
+def _stamp(times: FrameTimes, index: int) -> int:
+    """The frame's header stamp (its log time without one), as depth images are stamped."""
+    stamp = times.stamp(index)
+    return stamp if stamp else times.log_time(index)
