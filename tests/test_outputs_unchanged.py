@@ -23,7 +23,7 @@ import compare_versions  # noqa: E402
 # parameters: the samples' decisions are the same, their metadata lists them and their hash)
 # and #20's metric loop poses on the LoopClosure messages (new fields, on purpose;
 # --no-verify's decisions unchanged, its bytes only by the appended fields' definitions).
-BYTES_REFERENCE = "MERGE"
+BYTES_REFERENCE = "d5d5313"
 # The paper's detector (--no-verify) decides the same loop closures and sequences as before
 # the package layout of issue #18: the records compared, not the bytes around them.
 PAPER_REFERENCE = "4c02724"
