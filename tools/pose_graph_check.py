@@ -28,10 +28,12 @@ from doseqslam_logs.sources.poses import read_poses
 F64 = npt.NDArray[np.float64]
 
 
-def generate_drifting_drive(folder: Path, seed: int = 29) -> Path:
-    """A drive like drive_loops but another seed (29: odometry 4.4 m off at the end)."""
+def generate_drifting_drive(folder: Path, seed: int = 29, depth: bool = False) -> Path:
+    """A drive like drive_loops but another seed (29: odometry 4.4 m off at the end); with
+    `depth`, an aligned depth topic too (make_sample_logs --depth), named drift{seed}depth."""
+    name = f"drift{seed}depth" if depth else f"drift{seed}"
     config = gen.Config(
-        name=f"drift{seed}",
+        name=name,
         seed=seed,
         route="loops",
         duration=120.0,
@@ -41,9 +43,10 @@ def generate_drifting_drive(folder: Path, seed: int = 29) -> Path:
         formats=("ros2mcap",),
         quality=70,
         noise_sigma=1.5,
+        depth=depth,
     )
     gen.generate(config, folder, progress=False)
-    return folder / f"drift{seed}.ros2.mcap"
+    return folder / f"{name}.ros2.mcap"
 
 
 def annotate_and_export(log: Path, folder: Path) -> dict[str, Path]:

@@ -30,7 +30,6 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-import make_sample_logs as gen
 import numpy as np
 import pose_graph_check as check
 from scipy.spatial.transform import Rotation
@@ -62,25 +61,6 @@ INJECTED = {
     "Huber + check": OptimizeOptions(loop_kernel="huber"),
     "Cauchy + check (default)": OptimizeOptions(),
 }
-
-
-def generate_depth_drive(folder: Path, seed: int = 29) -> Path:
-    """The drifting drive of `seed` with an aligned depth topic (make_sample_logs --depth)."""
-    config = gen.Config(
-        name=f"drift{seed}depth",
-        seed=seed,
-        route="loops",
-        duration=120.0,
-        rate=2.0,
-        width=256,
-        height=192,
-        formats=("ros2mcap",),
-        quality=70,
-        noise_sigma=1.5,
-        depth=True,
-    )
-    gen.generate(config, folder, progress=False)
-    return folder / f"drift{seed}depth.ros2.mcap"
 
 
 def oracle_edges(graph: PoseGraph, truth: PoseTrack) -> list[Edge]:
@@ -159,7 +139,7 @@ def metric_table() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
         drifting = [(f"seed {s}", check.generate_drifting_drive(root, s)) for s in (29, 2, 20)]
-        depth = [("seed 29 with depth", generate_depth_drive(root, 29))]
+        depth = [("seed 29 with depth", check.generate_drifting_drive(root, 29, depth=True))]
         for k, (name, log) in enumerate(drifting + depth + COMMITTED):
             annotated = root / f"annotated{k}.mcap"
             if cli_main(["annotate", str(log), "-o", str(annotated)]) != 0:
