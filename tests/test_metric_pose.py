@@ -349,6 +349,24 @@ def test_rotation_only_is_the_verdicts_rotation_without_a_translation() -> None:
     assert pose.inliers >= 140
 
 
+def test_a_rotation_only_sigma_is_at_least_its_floor() -> None:
+    # The essential fit alone states a fraction of a degree; its measured error is degrees.
+    scene = make_scene(LOOP)
+    floor = MetricPoseParameters().rotation_only_min_sigma_deg
+    pose = run(scene, depth=False, odometry=False)
+    assert pose is not None and pose.method == "rotation_only"
+    sigmas_deg = np.degrees(np.sqrt(np.linalg.eigvalsh(pose.covariance[3:, 3:])))
+    assert sigmas_deg.min() == pytest.approx(floor, rel=1e-6)
+    unfloored = run(
+        scene,
+        depth=False,
+        odometry=False,
+        params=MetricPoseParameters(rotation_only_min_sigma_deg=1e-3),
+    )
+    assert unfloored is not None
+    assert np.degrees(np.sqrt(np.linalg.eigvalsh(unfloored.covariance[3:, 3:]))).max() < floor
+
+
 def test_no_rung_and_no_rotation_gives_none() -> None:
     scene = make_scene(LOOP)
     without_pose = Verdict(True, 100, 100, "F", "accepted")
