@@ -22,8 +22,9 @@ import compare_versions  # noqa: E402
 # finer look at feature-poor frames, #22's small_frame_min_inliers (new verification
 # parameters: the samples' decisions are the same, their metadata lists them and their hash)
 # and #20's metric loop poses on the LoopClosure messages (new fields, on purpose;
-# --no-verify's decisions unchanged, its bytes only by the appended fields' definitions).
-BYTES_REFERENCE = "d5d5313"
+# --no-verify's decisions unchanged, its bytes only by the appended fields' definitions), and
+# the rotation-only metric poses' floored rotation covariance.
+BYTES_REFERENCE = "b9f7cd3"
 # The paper's detector (--no-verify) decides the same loop closures and sequences as before
 # the package layout of issue #18: the records compared, not the bytes around them.
 PAPER_REFERENCE = "4c02724"
