@@ -266,6 +266,18 @@ def guarded_reads(path: Path, items: Iterable[T]) -> Iterator[T]:
         yield item
 
 
+def input_records(path: Path) -> Iterator[object]:
+    """The records of an MCAP file to copy, read errors as SourceError (`guarded_reads`).
+
+    CRCs are checked: a corrupt chunk of any topic must fail the copy (or be left to
+    --recover), never be written out again under a fresh, valid CRC.
+    """
+    with reading_errors(path):
+        stream = path.open("rb")
+    with stream:
+        yield from guarded_reads(path, StreamReader(stream, validate_crcs=True).records)
+
+
 def refuse_same_file(input_path: Path, output_path: Path) -> None:
     """Raises OutputError when writing `output_path` would overwrite the input log or write
     into the input bag's folder."""
@@ -377,14 +389,8 @@ class _McapCopier:
 
     def copy(self, path: Path) -> None:
         """Raises SourceError when the input cannot be read."""
-        with reading_errors(path):
-            stream = path.open("rb")
-        with stream:
-            # CRCs checked: a corrupt chunk of any topic must fail the copy (or be left to
-            # --recover), never be written out again under a fresh, valid CRC.
-            records = StreamReader(stream, validate_crcs=True).records
-            for record in guarded_reads(path, records):
-                self._copy_record(record, path)
+        for record in input_records(path):
+            self._copy_record(record, path)
         self._copy_unused_schemas()
 
     def _copy_record(self, record: object, path: Path) -> None:

@@ -23,7 +23,6 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -36,8 +35,7 @@ from .mcap_writer import (
     LIBRARY,
     OutputFormat,
     detect_input,
-    guarded_reads,
-    reading_errors,
+    input_records,
     refuse_same_file,
 )
 
@@ -183,12 +181,8 @@ class _Copier:
         self.copied = 0
 
     def copy(self, path: Path) -> None:
-        with reading_errors(path):
-            stream = path.open("rb")
-        with stream:
-            records = StreamReader(stream, validate_crcs=True).records
-            for record in guarded_reads(path, records):
-                self._record(record, path)
+        for record in input_records(path):
+            self._record(record, path)
         self.write_poses_until(None)
         for schema_id, schema in self.schemas.items():  # schemas no channel used
             self._schema(schema_id, schema)
