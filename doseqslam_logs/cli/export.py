@@ -103,9 +103,10 @@ def add_pose_graph_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _options(args: argparse.Namespace) -> ExportOptions:
+def pose_graph_options(args: argparse.Namespace, include_rejected: bool = False) -> ExportOptions:
+    """The ExportOptions of the arguments `add_pose_graph_options` added (export, optimize)."""
     return ExportOptions(
-        include_rejected=args.include_rejected,
+        include_rejected=include_rejected,
         odometry_topic=args.odometry_topic,
         poses_log=args.poses_from,
         stride=args.stride,
@@ -117,7 +118,9 @@ def _options(args: argparse.Namespace) -> ExportOptions:
 
 
 def run(args: argparse.Namespace) -> int:
-    result = export_log(args.log, args.format, _options(args), args.output)
+    result = export_log(
+        args.log, args.format, pose_graph_options(args, args.include_rejected), args.output
+    )
     if args.output is None:
         for chunk in result.chunks:
             sys.stdout.write(chunk)

@@ -11,7 +11,6 @@ import argparse
 import json
 from pathlib import Path
 
-from ..export.base import ExportOptions
 from ..export.gtsam_graph import (
     DEFAULT_KERNEL_WIDTH,
     DEFAULT_LOOP_KERNEL,
@@ -20,7 +19,7 @@ from ..export.gtsam_graph import (
     OptimizeOptions,
 )
 from ..export.optimize import OPTIMIZED_POSE_TOPIC, optimize_log
-from .export import add_pose_graph_options, positive_float
+from .export import add_pose_graph_options, pose_graph_options, positive_float
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -65,15 +64,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 
 
 def run(args: argparse.Namespace) -> int:
-    options = ExportOptions(
-        odometry_topic=args.odometry_topic,
-        poses_log=args.poses_from,
-        stride=args.stride,
-        loop_translation_sigma_m=args.loop_translation_sigma,
-        loop_rotation_sigma_deg=args.loop_rotation_sigma,
-        use_verified_rotation=not args.identity_loop_rotation,
-        loop_model=args.loop_model,
-    )
+    options = pose_graph_options(args)
     optimize_options = OptimizeOptions(
         loop_kernel=args.loop_kernel,
         kernel_width=args.kernel_width,
