@@ -183,16 +183,9 @@ def read_depth(
         target = _nearest(wanted, stamp, tolerance_ns)
         if target is None:
             continue
-        kept = found.images.get(target)
-        if kept is not None and abs(kept.stamp_ns - target) <= abs(stamp - target):
-            continue
-        try:
-            metres = depth_metres(image, max_pixels)
-            _check_size(image, size)
-        except ImageDecodeError as error:
-            found.skip(error)
-            continue
-        found.images[target] = DepthImage(stamp, metres)
+        nearer = _nearer(found, found.images.get(target), target, image, stamp, max_pixels, size)
+        if nearer is not None:
+            found.images[target] = nearer
     return found
 
 
@@ -228,18 +221,33 @@ def stream_depth(
         target = _nearest(wanted, stamp, tolerance_ns)
         if target is None or target in done:
             continue
-        kept = pending.get(target)
-        if kept is not None and abs(kept.stamp_ns - target) <= abs(stamp - target):
-            continue
-        try:
-            metres = depth_metres(image, max_pixels)
-            _check_size(image, size)
-        except ImageDecodeError as error:
-            found.skip(error)
-            continue
-        pending[target] = DepthImage(stamp, metres)
+        nearer = _nearer(found, pending.get(target), target, image, stamp, max_pixels, size)
+        if nearer is not None:
+            pending[target] = nearer
     for target in sorted(pending):
         yield target, pending[target]
+
+
+def _nearer(
+    found: DepthFrames,
+    kept: DepthImage | None,
+    target: int,
+    image: ImageMessage,
+    stamp: int,
+    max_pixels: int,
+    size: tuple[int, int] | None,
+) -> DepthImage | None:
+    """`image` decoded, when it is nearer `target` than the image `kept` for it so far (ties
+    keep the first); None when it is not, or when it cannot be used (skipped in `found`)."""
+    if kept is not None and abs(kept.stamp_ns - target) <= abs(stamp - target):
+        return None
+    try:
+        metres = depth_metres(image, max_pixels)
+        _check_size(image, size)
+    except ImageDecodeError as error:
+        found.skip(error)
+        return None
+    return DepthImage(stamp, metres)
 
 
 def _records(source: Source, topic: str) -> Iterator[tuple[RecordInfo, DecodedMessage]]:
