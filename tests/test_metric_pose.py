@@ -549,3 +549,22 @@ def test_on_drive_loops_metric_edges_beat_the_placeholder(tmp_path: Path) -> Non
     assert translation_error < 0.5 * placeholder_error
     rotation_error = np.median([r.rotation_error_deg for r in metric])
     assert rotation_error < np.median([r.epipolar_rotation_error_deg for r in metric])
+
+
+def test_the_odometry_rung_covariance_carries_its_calibrated_scale() -> None:
+    """Rung 2's covariance is the fit's times `odometry_covariance_scale` (calibrated so that
+    the median NEES on the calibration drives is chi-square's); the pose itself is unchanged."""
+    scene = make_scene(LOOP, odometry=(FORWARD_1M,))
+    unscaled = run(
+        scene,
+        depth=False,
+        odometry=True,
+        params=MetricPoseParameters(odometry_covariance_scale=1.0),
+    )
+    scaled = run(scene, depth=False, odometry=True)
+    assert unscaled is not None and scaled is not None and scaled.translation is not None
+    assert scaled.translation == unscaled.translation
+    assert P.odometry_covariance_scale > 1.0
+    np.testing.assert_allclose(
+        scaled.covariance, unscaled.covariance * P.odometry_covariance_scale, rtol=1e-9
+    )
