@@ -104,9 +104,6 @@ class MetricPoseParameters:
     # Rung 2: refine each neighbour's odometry pose by the epipolar geometry of its matches
     # with the match frame, the odometry (with its covariance) as the prior (`_refined_baseline`).
     refine_baselines: bool = True
-    # Rung 3: fit the essential matrix again on the metric fit's own matches and keep it when
-    # it explains more of them than the verification's (`_better_supported_essential`).
-    refit_rotation_only: bool = True
 
     def __post_init__(self) -> None:
         positive = (
@@ -736,8 +733,6 @@ def rotation_only(
     q_index, m_index = ratio_matches(query, match, verification.ratio)
     pair = _pair_rays(query, match, q_index, m_index, intrinsics, verification)
     rays_q, rays_m, focal = pair.rays_query, pair.rays_match, pair.focal
-    if params.refit_rotation_only:
-        rotation, direction = _better_supported_essential(pair, rotation, direction, params)
     distances = pair.distances_px(rotation, direction)
     inlier = np.abs(distances) <= pair.threshold_px
     covariance = np.full((6, 6), 0.0)
@@ -752,38 +747,6 @@ def rotation_only(
     else:
         covariance[3:, 3:] = np.diag([math.inf] * 3)
     return MetricPose("rotation_only", _quaternion(rotation), None, covariance, count, rms)
-
-
-def _better_supported_essential(
-    pair: _PairRays, rotation: F64, direction: F64, params: MetricPoseParameters
-) -> tuple[F64, F64]:
-    """The verdict's (R, t direction), or an essential matrix fitted again on the metric fit's
-    own matches when it explains more of them (Sampson distance within the threshold). The
-    verdict's comes from the verification's features; the metric fit's are SIFT keypoints,
-    placed below a pixel, and more of them."""
-    if pair.count < 8:
-        return rotation, direction
-    cv2.setRNGSeed(_FIT_SEED)
-    try:
-        essential, _ = cv2.findEssentialMat(
-            pair.rays_query[:, :2] / pair.rays_query[:, 2:],
-            pair.rays_match[:, :2] / pair.rays_match[:, 2:],
-            np.eye(3),
-            cv2.RANSAC,
-            params.confidence,
-            pair.threshold_px / pair.focal,
-        )
-    except cv2.error:
-        return rotation, direction
-    if essential is None or essential.shape != (3, 3):  # none, or several solutions stacked
-        return rotation, direction
-    _, refit, t, _ = cv2.recoverPose(
-        essential, pair.rays_query[:, :2].copy(), pair.rays_match[:, :2].copy(), np.eye(3)
-    )
-    refit_rotation, refit_direction = np.asarray(refit, np.float64), np.asarray(t, np.float64)
-    if pair.support(refit_rotation, refit_direction.ravel()) > pair.support(rotation, direction):
-        return refit_rotation, refit_direction.ravel()
-    return rotation, direction
 
 
 @dataclass(frozen=True, eq=False)
