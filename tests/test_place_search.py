@@ -214,7 +214,7 @@ def test_the_columns_scored_per_sequence_do_not_grow_with_the_log(monkeypatch) -
 
 def test_windows_of_an_empty_index_propose_nothing() -> None:
     search = PlaceSearch(Parameters(place_search="index"))
-    search.keep(0, None)
+    search.keep(0, None, 0)
     assert search.windows(0, 0, 0, Exclusion(0, 0)) == []
 
 
@@ -253,3 +253,24 @@ def test_alternatives_are_tried_at_high_frame_rates_and_given_up_after_two_hopel
     assert [c.verdict for c in plain.checks] == [
         c.verdict for c in tried.checks
     ]  # same verdicts on blank frames
+
+
+def test_keyframes_alone_join_the_index_and_still_find_the_revisits() -> None:
+    """place_index_interval_s: a frame joins the index only that long after the last one
+    that did (here every other frame of the 1-frame-a-second route); the sequence's own
+    frames still query it, and the revisits found are the same true places."""
+    params = Parameters(place_search="index", alternatives=3, place_index_interval_s=2.0)
+    detector = DOSeqSLAM(params, segmenter=EveryN())
+    route = Route()
+    decisions = []
+    for t in range(4 * LAP):
+        decisions += detector.push_prepared(t * 1_000_000_000, route.frame(t))
+    decisions += detector.finish()
+    assert detector._places is not None
+    indexed = detector._places.index.frame_count
+    assert 0 < indexed <= (4 * LAP) // 2 + 1
+    later = [d for d in decisions if d.first_index >= 2 * LAP + 50]
+    accepted = [d for d in later if d.accepted]
+    assert len(accepted) >= 0.9 * len(later) and all(true_match(d) for d in accepted)
+    with pytest.raises(ParameterError):
+        Parameters(place_index_interval_s=-1.0)

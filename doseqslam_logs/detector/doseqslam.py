@@ -177,7 +177,7 @@ class DOSeqSLAM:
         index = self._store.append(frame.vector)
         self._timestamps.append(timestamp_ns)
         if self._places is not None:
-            self._places.keep(index, frame.place_descriptors)
+            self._places.keep(index, frame.place_descriptors, timestamp_ns)
         with self.timings.stage("segmentation"):
             if self._open_first is not None and self._reached_cap(index):
                 self._segmenter.restart(frame.segmentation)

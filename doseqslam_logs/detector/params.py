@@ -37,7 +37,13 @@ _CHOICES: dict[str, tuple[str, ...]] = {
 # its default, so every earlier parameter set keeps its dict, TOML, canonical JSON and hash
 # byte for byte (they are written into output files), and `from_dict` accepts them either way.
 # A field added from now on belongs here with its default.
-LATER_FIELDS = ("place_search", "place_count", "place_queries", "place_margin")
+LATER_FIELDS = (
+    "place_search",
+    "place_count",
+    "place_queries",
+    "place_margin",
+    "place_index_interval_s",
+)
 
 
 def reject_non_finite(params: Any) -> None:
@@ -101,6 +107,12 @@ class Parameters:
     place_count: int = 4
     place_queries: int = 5
     place_margin: int = 10
+    # Frames join the place index at most one per this many seconds of timestamp (keyframes;
+    # 0: every frame). At 10 Hz, neighbouring frames are near copies: indexing each costs the
+    # nearest-word search of its descriptors and postings that grow with the log, and adds no
+    # place the sequence's windows (+-place_margin) would not find. With verification on, the
+    # CLI raises it to VERIFIED_INDEX_INTERVAL_S (verification.params).
+    place_index_interval_s: float = 0.0
 
     def __post_init__(self) -> None:
         reject_non_finite(self)
@@ -138,6 +150,8 @@ class Parameters:
             raise ParameterError("alternatives must be >= 0 and alternative_separation >= 1")
         if self.place_margin < 0:
             raise ParameterError("place_margin must be >= 0")
+        if self.place_index_interval_s < 0:
+            raise ParameterError("place_index_interval_s must be >= 0")
 
     @property
     def velocities(self) -> tuple[float, ...]:

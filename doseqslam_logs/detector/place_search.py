@@ -115,29 +115,39 @@ class PlaceSearch:
     def __init__(self, params: Parameters, index: PlaceIndexParams | None = None) -> None:
         self.params = params
         self.index = PlaceIndex(index)
-        self._waiting: deque[tuple[int, Descriptors | None]] = deque()
+        # (frame, descriptors, joins the index): every frame's, for the sequence's queries.
+        self._waiting: deque[tuple[int, Descriptors | None, bool]] = deque()
+        self._interval_ns = round(params.place_index_interval_s * 1e9)
+        self._last_indexed_ns: int | None = None
 
-    def keep(self, frame_index: int, descriptors: Descriptors | None) -> None:
-        """Hold a frame's descriptors until the frame enters a queried database."""
-        self._waiting.append((frame_index, descriptors))
+    def keep(self, frame_index: int, descriptors: Descriptors | None, timestamp_ns: int) -> None:
+        """Hold a frame's descriptors until the frame enters a queried database; it will join
+        the index when it is a keyframe: `place_index_interval_s` after the last one."""
+        keyframe = (
+            self._last_indexed_ns is None
+            or timestamp_ns - self._last_indexed_ns >= self._interval_ns
+        )
+        if keyframe:
+            self._last_indexed_ns = timestamp_ns
+        self._waiting.append((frame_index, descriptors, keyframe))
 
     def _index_before(self, database: int) -> None:
         while self._waiting and self._waiting[0][0] < database:
-            frame, descriptors = self._waiting.popleft()
-            if descriptors is not None and len(descriptors):
+            frame, descriptors, keyframe = self._waiting.popleft()
+            if keyframe and descriptors is not None and len(descriptors):
                 self.index.add(frame, descriptors)
 
     def _descriptors(self, frame: int) -> Descriptors | None:
         first = self._waiting[0][0] if self._waiting else frame + 1
         if frame < first:
             return None
-        held_frame, descriptors = self._waiting[frame - first]
+        held_frame, descriptors, _ = self._waiting[frame - first]
         assert held_frame == frame
         return descriptors
 
     @property
     def memory_bytes(self) -> int:
-        held = sum(d.nbytes for _, d in self._waiting if d is not None)
+        held = sum(d.nbytes for _, d, _ in self._waiting if d is not None)
         return self.index.memory_bytes + held
 
     def windows(self, first: int, last: int, database: int, exclusion: Exclusion) -> list[Window]:

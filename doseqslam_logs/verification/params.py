@@ -191,12 +191,17 @@ VERIFIED_SEGMENTATION: Mapping[str, Any] = {
 # (verification.stage), 4,963 true pairs, 83.7 % of those seconds and 3 false pairs. Without
 # verification the paper's full search stays.
 VERIFIED_PLACE_SEARCH = "index"
+# With the indexed search and verification on (unless given): at most one frame per this many
+# seconds joins the place index (`Parameters.place_index_interval_s`). At 2 Hz or slower every
+# frame still does; at 10 Hz one in INDEX_EVERY (docs/results.md, "Keyframes in the index").
+VERIFIED_INDEX_INTERVAL_S = 0.25
 
 
 def verified_defaults(given: Callable[[str], bool]) -> dict[str, Any]:
     """The detector parameters that verification changes, as changes for Parameters.replace:
-    th = VERIFIED_THRESHOLD, alternatives = VERIFIED_ALTERNATIVES, VERIFIED_SEGMENTATION and
-    place_search = VERIFIED_PLACE_SEARCH,
+    th = VERIFIED_THRESHOLD, alternatives = VERIFIED_ALTERNATIVES, VERIFIED_SEGMENTATION,
+    place_search = VERIFIED_PLACE_SEARCH and place_index_interval_s =
+    VERIFIED_INDEX_INTERVAL_S,
     each left out where `given(name)` says the user set it (the segmentation as a whole, when
     either of its parameters is given)."""
     defaults: dict[str, Any] = {}
@@ -208,6 +213,8 @@ def verified_defaults(given: Callable[[str], bool]) -> dict[str, Any]:
         defaults.update(VERIFIED_SEGMENTATION)
     if not given("place_search"):
         defaults["place_search"] = VERIFIED_PLACE_SEARCH
+    if not given("place_index_interval_s"):
+        defaults["place_index_interval_s"] = VERIFIED_INDEX_INTERVAL_S
     return defaults
 
 
