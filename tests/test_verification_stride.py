@@ -20,21 +20,30 @@ from hypothesis import strategies as st
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.annotations.records import FrameTimes
+from doseqslam_logs.detector import make_detector
 from doseqslam_logs.detector.events import Alternative
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.export.loops import loops_summary
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
+from doseqslam_logs.pipeline.replay import replay
 from doseqslam_logs.pipeline.reread import FolderFrameReader, LogFrameReader
 from doseqslam_logs.sources import open_source, pick_image_topic
+from doseqslam_logs.sources.camera_info import read_camera_info
 from doseqslam_logs.sources.image_folder import list_images
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
     FrameFeatures,
+    stage,
     verified_detector_parameters,
 )
-from doseqslam_logs.verification.geometry import _ratio_matches
-from doseqslam_logs.verification.stage import query_stride, verify_in_threads
+from doseqslam_logs.verification.geometry import Intrinsics, _ratio_matches
+from doseqslam_logs.verification.stage import (
+    VerificationStats,
+    VerifiedDecision,
+    query_stride,
+    verify_in_threads,
+)
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOOPS = SAMPLES / "drive_loops.ros2.mcap"
@@ -293,3 +302,39 @@ def test_pictures_draw_skipped_pairs_apart_from_rejected_ones(strided_log) -> No
     assert statuses["tp"] + statuses["fp"] == verdicts["accepted"]
     assert list(plots._by_status(detections(plots, log, gt, 0)))[:2] == ["skipped", "rejected"]
     assert plots.LABELS["skipped"] == "not checked (high frame rate)"
+
+
+def test_a_sequence_looks_first_where_the_one_before_was_verified(monkeypatch) -> None:
+    """At a high frame rate each sequence first checks where the previous one's last accepted
+    pair puts it (proposal -1, `Hint`): the same true places for fewer frame pairs than with
+    every sequence on its own (chains of one decision), and the same checks on 1 and 2
+    threads (the chains are fixed)."""
+    params = verified_detector_parameters()
+    with open_source(LOOPS) as source:
+        frames = list(decoded_frames(source.image_messages(TOPIC), FrameCounts()))
+    decisions = replay(frames, make_detector(params)).decisions
+    times = FrameTimes.from_pairs((f.log_time_ns, f.header_stamp_ns) for f in frames)
+    info = read_camera_info(LOOPS, TOPIC)
+    assert info is not None
+    k = Intrinsics(info.fx, info.fy, info.cx, info.cy)
+
+    def run(workers: int) -> tuple[list[VerifiedDecision], VerificationStats]:
+        return verify_in_threads(
+            decisions, lambda: LogFrameReader(LOOPS, TOPIC, times), STRIDED, k, workers
+        )
+
+    chained, chained_stats = run(1)
+    assert run(2)[0] == chained
+    monkeypatch.setattr(stage, "CHAIN_DECISIONS", 1)
+    alone, alone_stats = run(1)
+    continued = [c for v in chained for c in v.checks if c.accepted and c.proposal == -1]
+    assert continued and chained_stats.continued == len(continued)
+    assert all(c.continued_match >= 0 for c in continued)
+    gt = load_ground_truth(SAMPLES / "drive_loops.gt.npz")
+    for verified in (chained, alone):
+        accepted = [c for v in verified for c in v.checks if c.accepted]
+        q = np.array([c.candidate.query_index for c in accepted])
+        m = np.array([c.refined_match_index for c in accepted])
+        assert gt.are_true(q, m, 0).all()
+    assert chained_stats.accepted >= alone_stats.accepted
+    assert chained_stats.pairs < alone_stats.pairs

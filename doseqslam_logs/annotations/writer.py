@@ -13,7 +13,7 @@ from typing import Any
 from ..detector.events import Candidate, SequenceDecision
 from ..verification.geometry import Verdict
 from ..verification.metric_pose import MetricPose
-from ..verification.stage import PairCheck, VerifiedDecision
+from ..verification.stage import CONTINUED, PairCheck, VerifiedDecision
 from .records import (
     ACCEPTED,
     NAN3,
@@ -144,10 +144,13 @@ def _pose_values(verdict: Verdict) -> dict[str, Any]:
 
 
 def _proposal_values(decision: SequenceDecision, z: int, check: PairCheck | None) -> dict[str, Any]:
-    """Which trajectory's match the check accepted: 0 the detector's, k its k-th next best."""
+    """Which trajectory's match the check accepted: 0 the detector's, k its k-th next best,
+    CONTINUED the previous sequence's place (`verification.stage.Hint`)."""
     proposal = 0 if check is None or not check.accepted else check.proposal
     match = decision.loop_closures[z].match_index
-    if proposal:
+    if check is not None and proposal == CONTINUED:
+        match = check.continued_match
+    elif proposal:
         match = decision.alternatives[proposal - 1].match_indices[z]
     return {"proposal": proposal, "proposal_match_index": match}
 

@@ -53,6 +53,15 @@ At s > 1 the next-best trajectories are proposals of their own, each checked by 
 (tracked, coarse to fine, given up after two hopeless checks): a revisit whose true visit is an
 alternative (the indexed place search proposes the other visits of a place so) is found there,
 at a cost of at most two hopeless checks per wrong alternative and sequence (`_strided`).
+
+Sequences at a high frame rate are short (about 2 s of a 10 Hz drive), and on a revisit the
+next one drives on through the place the last one was verified at. So each sequence is handed
+the previous one's last accepted pair (`Hint`) and looks first where it puts the sequence's
+first query at the same speed: a tracked check there (proposal CONTINUED, -1), before the
+detector's own search. Threads verify fixed chains of CHAIN_DECISIONS decisions, each handing
+its hint to the next within the chain, so the results are the same on any number of threads.
+On the first 20 minutes of the 10 Hz hour: FIGURES (docs/results.md, "The previous sequence's
+place, continued").
 """
 
 from __future__ import annotations
@@ -102,6 +111,12 @@ COARSE_GRID = 2
 # A check that passes but is not bracketed walks on at most this many refine_radius past its
 # window, towards the side where its frames say the query's place lies (`Verifier._walk`).
 WALK_RADII = 2
+# `PairCheck.proposal` of a pair accepted where the previous sequence's verified place
+# continues (`Hint`), at a high frame rate.
+CONTINUED = -1
+# Decisions verified in a row by one thread, each handing its verified place to the next
+# (`Hint`): fixed, so the results do not depend on the number of threads.
+CHAIN_DECISIONS = 16
 
 
 class Cancelled(Exception):
@@ -118,8 +133,10 @@ class PairCheck:
     refined_match_index: int  # the frame of match +- r with the most inliers
     verdict: Verdict
     # 0: the detector's match; k > 0: the match on the sequence's k-th next-best trajectory
-    # (decision.alternatives[k - 1]), whose +- r window held the refined match.
+    # (decision.alternatives[k - 1]), whose +- r window held the refined match; CONTINUED:
+    # the previous sequence's verified place, continued (`Hint`), at `continued_match`.
     proposal: int = 0
+    continued_match: int = -1
 
     @property
     def accepted(self) -> bool:
@@ -129,6 +146,20 @@ class PairCheck:
     def skipped(self) -> bool:
         """Left unchecked at a high frame rate (query stride, or its sequence given up)."""
         return self.verdict.reason in SKIPPED_REASONS
+
+
+@dataclass(frozen=True)
+class Hint:
+    """Where the previous sequence's last accepted pair put its query: at a high frame rate
+    the next sequence usually drives on through the same place, so its first check looks
+    there first (at query q: match + (q - query), the same speed), before the detector's
+    proposals. Verified as any proposal, so a wrong hint costs a hopeless check or two."""
+
+    query_index: int
+    match_index: int
+
+    def match_for(self, query_index: int) -> int:
+        return self.match_index + (query_index - self.query_index)
 
 
 @dataclass(frozen=True)
@@ -146,6 +177,15 @@ class VerifiedDecision:
     def max_inliers(self) -> int:
         return max((check.verdict.inliers for check in self.checks), default=0)
 
+    @property
+    def hint(self) -> Hint | None:
+        """The last accepted pair, for the next sequence (None: none accepted)."""
+        accepted = [check for check in self.checks if check.accepted]
+        if not accepted:
+            return None
+        last = accepted[-1]
+        return Hint(last.candidate.query_index, last.refined_match_index)
+
 
 @dataclass
 class VerificationStats:
@@ -155,6 +195,7 @@ class VerificationStats:
     candidates: int = 0
     accepted: int = 0
     from_alternatives: int = 0  # of the accepted: on a next-best trajectory (proposal > 0)
+    continued: int = 0  # of the accepted: where the previous sequence's place went on
     skipped: int = 0  # candidates left unchecked (counted in `candidates`)
     given_up: int = 0  # of the skipped: after their sequence's two hopeless checks
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
@@ -236,9 +277,14 @@ class Verifier:
         self._cache = FeatureCache(self.cache_bytes)
 
     def verify_all(self, decisions: Iterable[SequenceDecision]) -> list[VerifiedDecision]:
-        return [self.verify(decision) for decision in decisions]
+        """Each decision in turn, each handed the one before's `hint` (as the threads of
+        `verify_in_threads` do within a chain)."""
+        verified: list[VerifiedDecision] = []
+        for decision in decisions:
+            verified.append(self.verify(decision, verified[-1].hint if verified else None))
+        return verified
 
-    def verify(self, decision: SequenceDecision) -> VerifiedDecision:
+    def verify(self, decision: SequenceDecision, hint: Hint | None = None) -> VerifiedDecision:
         """The decision with one PairCheck per candidate when it is accepted, else none.
 
         At stride 1 every frame of the window is checked, not only the detector's match: on
@@ -259,10 +305,11 @@ class Verifier:
         if stride == 1:
             checks = self._exhaustive(decision, features)
         else:
-            checks = self._strided(decision, stride)
+            checks = self._strided(decision, stride, hint)
         self.stats.candidates += len(checks)
         self.stats.accepted += sum(check.accepted for check in checks)
         self.stats.from_alternatives += sum(c.accepted and c.proposal > 0 for c in checks)
+        self.stats.continued += sum(c.accepted and c.proposal == CONTINUED for c in checks)
         self.stats.skipped += sum(check.skipped for check in checks)
         self.stats.given_up += sum(check.verdict.reason == GIVEN_UP_REASON for check in checks)
         return VerifiedDecision(decision, tuple(checks))
@@ -282,10 +329,14 @@ class Verifier:
             checks.append(check)
         return checks
 
-    def _strided(self, decision: SequenceDecision, stride: int) -> list[PairCheck]:
+    def _strided(
+        self, decision: SequenceDecision, stride: int, hint: Hint | None = None
+    ) -> list[PairCheck]:
         """Stride s > 1: every s-th candidate, coarse to fine, on each proposal in turn.
 
-        Proposal 0 is the detector's trajectory, k > 0 the k-th alternative. Each proposal is
+        Proposal 0 is the detector's trajectory, k > 0 the k-th alternative, and with a `hint`
+        one more, tried first: the previous sequence's place continued, its first check
+        tracked from the hint as from a previous check (`_continued`). Each proposal is
         tracked on its own (the offset of its last check) and given up after GIVE_UP_AFTER
         hopeless checks in a row; the proposal accepted last is tried first, so a sequence
         whose revisit lies on an alternative checks that one alone while it keeps passing.
@@ -293,10 +344,13 @@ class Verifier:
         coarse-to-fine search per proposal, and each wrong proposal two hopeless ones per
         sequence: bounded by (1 + alternatives) x the cost without alternatives.
         """
-        proposals = 1 + len(decision.alternatives)
+        proposals = 1 + len(decision.alternatives) + (hint is not None)
         runs = [0] * proposals  # hopeless checks in a row, per proposal
         last: list[PairCheck | None] = [None] * proposals  # each one's last check
         first = 0  # the proposal tried first: the last accepted
+        if hint is not None:  # the last slot; tracked from the hint, tried first
+            first = proposals - 1
+            last[first] = self._continued(decision, hint)
         checks: list[PairCheck] = []
         for z, candidate in enumerate(decision.candidates):
             if z % stride:
@@ -311,11 +365,11 @@ class Verifier:
             seen: dict[int, Verdict] = {}  # window frame -> verdict of this query
             kept: PairCheck | None = None
             for k in live:
-                proposed = self._proposed(decision, z, k)
+                proposed = self._proposed(decision, z, k, hint)
                 check = self._check(proposed, decision.database_size, stride, last[k], {}, seen)
                 last[k] = check
                 runs[k] = runs[k] + 1 if self._hopeless(check.verdict) else 0
-                result = PairCheck(candidate, check.refined_match_index, check.verdict, k)
+                result = self._numbered(candidate, check, k, len(decision.alternatives))
                 if kept is None or check.accepted or k == 0:  # rejected: the own check
                     kept = result
                 if check.accepted:
@@ -326,13 +380,37 @@ class Verifier:
         return checks
 
     @staticmethod
-    def _proposed(decision: SequenceDecision, z: int, proposal: int) -> Candidate:
-        """Candidate z at the match that proposal gives it (0: the detector's own)."""
+    def _proposed(
+        decision: SequenceDecision, z: int, proposal: int, hint: Hint | None = None
+    ) -> Candidate:
+        """Candidate z at the match that proposal gives it (0: the detector's own; after the
+        alternatives, the hint's place)."""
         candidate = decision.candidates[z]
         if proposal == 0:
             return candidate
-        match = decision.alternatives[proposal - 1].match_indices[z]
-        return dataclasses.replace(candidate, match_index=match)
+        if proposal > len(decision.alternatives):
+            assert hint is not None
+            match = min(hint.match_for(candidate.query_index), decision.database_size - 1)
+        else:
+            match = decision.alternatives[proposal - 1].match_indices[z]
+        return dataclasses.replace(candidate, match_index=max(match, 0))
+
+    @staticmethod
+    def _numbered(candidate: Candidate, check: PairCheck, k: int, alternatives: int) -> PairCheck:
+        """The check of proposal slot k as recorded: the hint's slot is CONTINUED."""
+        if k <= alternatives:
+            return PairCheck(candidate, check.refined_match_index, check.verdict, k)
+        match = check.candidate.match_index
+        return PairCheck(candidate, check.refined_match_index, check.verdict, CONTINUED, match)
+
+    def _continued(self, decision: SequenceDecision, hint: Hint) -> PairCheck:
+        """A stand-in previous check for the hint's slot, at offset 0 from where the hint puts
+        the first candidate, so that its first check is a tracked one (the frame
+        there and the grid beside it) rather than a search of the whole window; hopeless
+        there, the hint is not searched further."""
+        first = self._proposed(decision, 0, 1 + len(decision.alternatives), hint)
+        # Rejected with no inliers: a tracked check that is hopeless there too ends at once.
+        return PairCheck(first, first.match_index, Verdict(False, 0, 0, "E", "hint"))
 
     def _skipped(self, reason: str = SKIPPED_REASON) -> Verdict:
         return Verdict(False, 0, 0, "F" if self.intrinsics is None else "E", reason)
@@ -544,16 +622,17 @@ def verify_in_threads(
     """`Verifier.verify` of each decision, on `workers` threads; results in decision order.
 
     Each thread opens its own frame loader and has its own Verifier, with an equal share of
-    `cache_bytes`, and takes the next decision as it finishes one. OpenCV's matching and robust
-    fits release the GIL, so the threads run on separate cores. A decision's checks depend on
-    that decision alone, so the results are the same for any number of workers. Stats are
+    `cache_bytes`, and takes the next chain of CHAIN_DECISIONS decisions as it finishes one.
+    OpenCV's matching and robust fits release the GIL, so the threads run on separate cores. A
+    decision's checks depend on that decision and the one before it in its chain (`Hint`), and
+    the chains are fixed, so the results are the same for any number of workers. Stats are
     summed over the threads.
     """
     workers = max(1, workers)
     results: list[VerifiedDecision | None] = [None] * len(decisions)
     stats = VerificationStats()
     lock, stop = threading.Lock(), threading.Event()
-    order = iter(range(len(decisions)))
+    chains = iter(range(0, len(decisions), CHAIN_DECISIONS))
 
     def work() -> None:
         with open_loader() as loader:
@@ -561,10 +640,12 @@ def verify_in_threads(
             try:
                 while not stop.is_set():
                     with lock:
-                        index = next(order, None)
-                    if index is None:
+                        start = next(chains, None)
+                    if start is None:
                         break
-                    results[index] = verifier.verify(decisions[index])
+                    chain = decisions[start : start + CHAIN_DECISIONS]
+                    for offset, verified in enumerate(verifier.verify_all(chain)):
+                        results[start + offset] = verified
             except Cancelled:
                 pass  # stopped by another thread's error or the main thread's interrupt: that
                 # is what gets raised, not this
