@@ -61,6 +61,7 @@ from .decode import (
     decoded_frames,
 )
 from .feature_health import FeatureHealth, check_feasibility, run_feature_health
+from .frame_spill import spilled_frame_store
 from .metric_edges import MetricEdges, metric_edges
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
@@ -456,9 +457,10 @@ def _annotate(
         decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
         frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
         try:
-            detector = make_detector(params)
-            _announce(stage, "replay")
-            result = replay(recorder(frames), detector, progress, options.workers)
+            with spilled_frame_store(params) as store:
+                detector = make_detector(params, store)
+                _announce(stage, "replay")
+                result = replay(recorder(frames), detector, progress, options.workers)
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
