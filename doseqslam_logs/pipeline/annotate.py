@@ -12,13 +12,16 @@ import json
 import os
 import threading
 import time
+from array import array
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import numpy as np
+
 from .. import __version__, waiting
-from ..annotations.records import FrameTimes, RunMetadata
+from ..annotations.records import NO_STAMP, FrameTimes, RunMetadata
 from ..detector import Parameters, make_detector
 from ..errors import (
     DoseqslamError,
@@ -240,18 +243,25 @@ class _TimesRecorder:
     """Passes frames through and keeps each one's log time and header stamp by index."""
 
     def __init__(self) -> None:
-        self.pairs: list[tuple[int, int | None]] = []
+        # Two int64 arrays, 16 B a frame (a list of tuples took about 130).
+        self.log_times = array("q")
+        self.stamps = array("q")  # NO_STAMP: no header
         self.first_size = ""  # "WxH" of the first frame, for the feature-poor warning
 
     def __call__(self, frames: Iterable[Frame]) -> Iterator[Frame]:
         for frame in frames:
-            if not self.pairs:
+            if not self.log_times:
                 self.first_size = f"{frame.image.shape[1]}x{frame.image.shape[0]}"
-            self.pairs.append((frame.log_time_ns, frame.header_stamp_ns))
+            self.log_times.append(frame.log_time_ns)
+            stamp = frame.header_stamp_ns
+            self.stamps.append(NO_STAMP if stamp is None else stamp)
             yield frame
 
     def frame_times(self) -> FrameTimes:
-        return FrameTimes.from_pairs(self.pairs)
+        return FrameTimes(
+            np.frombuffer(self.log_times, np.int64).copy(),
+            np.frombuffer(self.stamps, np.int64).copy(),
+        )
 
 
 def printable_name(path: Path) -> str:
