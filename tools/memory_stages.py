@@ -91,14 +91,16 @@ class Probe:
         self.detector: Any = None
         self.started = time.perf_counter()
 
-    def record(self, stage: str, **held: int) -> None:
-        row = {
+    def record(self, stage: str, sizes: Callable[[], dict[str, int]] = dict) -> None:
+        """Memory now and the stage's peak, then the deep sizes (measured after, so that
+        their own traversal is not in the figures)."""
+        row: dict[str, Any] = {
             "stage": stage,
             "rss_mb": _mb(_status("VmRSS")),
             "stage_peak_mb": _mb(_status("VmHWM")),
             "t_s": round(time.perf_counter() - self.started, 1),
         }
-        row.update({name: _mb(value) for name, value in held.items()})
+        row.update({name: _mb(value) for name, value in sizes().items()})
         self.rows.append(row)
         print(json.dumps(row), flush=True)
         _reset_peak()
@@ -108,7 +110,7 @@ class Probe:
 
         def wrapped(*args: Any, **kwargs: Any) -> Any:
             result = original(*args, **kwargs)
-            self.record(name, **after(result))
+            self.record(name, lambda: after(result))
             return result
 
         setattr(annotate_module, name, wrapped)
@@ -116,12 +118,13 @@ class Probe:
     def install(self) -> None:
         make_detector = annotate_module.make_detector
 
-        def keep_detector(params: Any) -> Any:
-            self.detector = make_detector(params)
+        def keep_detector(*args: Any) -> Any:  # (params), or (params, store) since the spill
+            self.detector = make_detector(*args)
             return self.detector
 
         annotate_module.make_detector = keep_detector
         self.wrap("replay", lambda result: {**self.detector_parts(), **decisions_of(result)})
+        self.wrap("_detect", self.forget_detector)
         self.wrap("verify_decisions", verified_of)
         self.wrap("metric_edges", lambda metric: {"metric_edges": deep_size(metric)})
         self.wrap("write_annotated_mcap", lambda _: {})
@@ -129,10 +132,15 @@ class Probe:
 
         def annotations(cls: type[Annotations], *args: Any, **kwargs: Any) -> Annotations:
             made: Annotations = from_decisions(cls, *args, **kwargs)
-            self.record("annotations", messages=deep_size(list(made.messages)))
+            self.record("annotations", lambda: {"messages": deep_size(list(made.messages))})
             return made
 
         Annotations.from_decisions = classmethod(annotations)  # type: ignore[assignment]
+
+    def forget_detector(self, _: Any) -> dict[str, int]:
+        """annotate frees its detector after the replay (since `_detect`): so does the probe."""
+        self.detector = None
+        return {}
 
     def detector_parts(self) -> dict[str, int]:
         d = self.detector
@@ -140,6 +148,7 @@ class Probe:
         store = getattr(d, "_store", None)
         if store is not None:
             parts["frame_store"] = int(store.nbytes)
+            parts["frame_store_spilled"] = int(getattr(store, "spilled_bytes", 0))
         places = getattr(d, "_places", None)
         if places is not None:
             index = places.index
