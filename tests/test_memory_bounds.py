@@ -3,6 +3,11 @@ pipeline/frame_spill.py)."""
 
 from __future__ import annotations
 
+import gc
+import weakref
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 import pytest
 from detector_helpers import DictSpill
@@ -10,7 +15,11 @@ from detector_helpers import DictSpill
 from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.detector.difference import FrameStore, sad_columns, sad_rows
 from doseqslam_logs.errors import OutputError
+from doseqslam_logs.pipeline import annotate as annotate_module
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.pipeline.frame_spill import FileSpill, spilled_frame_store
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
 
 
 def filled(store: FrameStore, count: int, seed: int = 0) -> FrameStore:
@@ -87,3 +96,26 @@ def test_the_pipeline_store_fits_the_parameters_and_a_wrong_one_is_refused() -> 
         make_detector(params, store)
     with pytest.raises(ValueError, match="frame store"):
         make_detector(params, FrameStore(16, "uint8"))
+
+
+def test_annotate_frees_its_detector_before_the_later_stages(tmp_path, monkeypatch) -> None:
+    """The detector's place index and frame vectors grow with the log: nothing may hold them
+    once the replay is over."""
+    made: list[weakref.ref[object]] = []
+    real = annotate_module.make_detector
+
+    def tracked(*args: Any) -> Any:
+        detector = real(*args)
+        made.append(weakref.ref(detector))
+        return detector
+
+    alive_at: dict[str, bool] = {}
+
+    def stage(name: str) -> None:
+        gc.collect()
+        alive_at[name] = any(ref() is not None for ref in made)
+
+    monkeypatch.setattr(annotate_module, "make_detector", tracked)
+    options = AnnotateOptions(verification=None, visualization=False)
+    annotate_log(SAMPLE, tmp_path / "out.mcap", Parameters(), options, stage=stage)
+    assert alive_at == {"replay": True, "write": False}

@@ -439,6 +439,21 @@ _Callbacks = tuple[
 ]
 
 
+def _detect(
+    params: Parameters,
+    frames: Iterable[Frame],
+    workers: int,
+    progress: Callable[[int], None] | None,
+    stage: StageCallback | None,
+) -> ReplayResult:
+    """The replay stage. Its detector, whose place index and frame vectors grow with the log
+    (hundreds of MB on a 4-hour log), is freed when this returns, before the later stages."""
+    with spilled_frame_store(params) as store:
+        detector = make_detector(params, store)
+        _announce(stage, "replay")
+        return replay(frames, detector, progress, workers)
+
+
 def _annotate(
     read_path: Path,
     log: Path,
@@ -467,10 +482,7 @@ def _annotate(
         decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
         frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
         try:
-            with spilled_frame_store(params) as store:
-                detector = make_detector(params, store)
-                _announce(stage, "replay")
-                result = replay(recorder(frames), detector, progress, options.workers)
+            result = _detect(params, recorder(frames), options.workers, progress, stage)
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
