@@ -4,6 +4,7 @@ pipeline/frame_spill.py)."""
 from __future__ import annotations
 
 import gc
+import tempfile
 import weakref
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 from detector_helpers import DictSpill
+from test_sinks import make_decisions, make_frame_times, write_json_mcap
 
 from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.detector.difference import FrameStore, sad_columns, sad_rows
@@ -18,6 +20,8 @@ from doseqslam_logs.errors import OutputError
 from doseqslam_logs.pipeline import annotate as annotate_module
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.pipeline.frame_spill import FileSpill, spilled_frame_store
+from doseqslam_logs.sinks.mcap_writer import Annotations, write_annotated_mcap
+from doseqslam_logs.sinks.message_spool import SpooledMessages, in_order
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
 
@@ -119,3 +123,60 @@ def test_annotate_frees_its_detector_before_the_later_stages(tmp_path, monkeypat
     options = AnnotateOptions(verification=None, visualization=False)
     annotate_log(SAMPLE, tmp_path / "out.mcap", Parameters(), options, stage=stage)
     assert alive_at == {"replay": True, "write": False}
+
+
+# -- the output messages' spool ----------------------------------------------------------------
+
+
+def spooled_and_listed(start_ns: int = 1_000_000_000) -> tuple[Annotations, Annotations]:
+    """The same decisions' messages, spooled and as a list (test_sinks' helpers: both kinds)."""
+    made = [
+        Annotations.from_decisions(
+            make_decisions(), make_frame_times(start_ns), "doseqslam", "h", {"run": "x"}, spool=s
+        )
+        for s in (True, False)
+    ]
+    return made[0], made[1]
+
+
+def test_spooled_messages_read_back_equal_in_the_given_and_the_sorted_order() -> None:
+    spooled, listed = spooled_and_listed()
+    messages = spooled.messages
+    assert isinstance(messages, SpooledMessages) and isinstance(listed.messages, list)
+    assert len(messages) == len(listed.messages) > 5
+    same = repr  # NaN fields: equal values whose objects differ compare unequal with ==
+    assert same(list(messages)) == same(listed.messages)
+    assert same(messages[-1]) == same(listed.messages[-1])
+    assert same(messages[1:3]) == same(listed.messages[1:3])
+    shuffled = SpooledMessages(listed.messages[::-1] + listed.messages[:2])  # ties, in order
+    by_key = sorted(listed.messages[::-1] + listed.messages[:2], key=lambda m: m.sort_key)
+    assert same(list(shuffled.in_order())) == same(by_key) == same(list(in_order(by_key)))
+    spooled.close()
+    shuffled.close()
+    with pytest.raises(ValueError):  # closed: its file is gone
+        messages[0]
+
+
+def test_spooled_and_listed_messages_write_the_same_bytes(tmp_path) -> None:
+    log = tmp_path / "in.mcap"
+    spooled, listed = spooled_and_listed(write_json_mcap(log, "ros2"))
+    for name, made in (("spooled", spooled), ("listed", listed)):
+        write_annotated_mcap(log, tmp_path / f"{name}.mcap", made)
+    spooled.close()
+    assert (tmp_path / "spooled.mcap").read_bytes() == (tmp_path / "listed.mcap").read_bytes()
+
+
+def test_a_message_that_cannot_be_made_leaves_no_spool_open(monkeypatch) -> None:
+    opened = []
+    real = tempfile.TemporaryFile
+
+    def tracked(*args: Any, **kwargs: Any) -> Any:
+        opened.append(real(*args, **kwargs))
+        return opened[-1]
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", tracked)
+    with pytest.raises(ValueError, match="not 'doseqslam'"):
+        Annotations.from_decisions(
+            make_decisions("seqslam"), make_frame_times(0), "doseqslam", "h", {}, spool=True
+        )
+    assert opened and all(file.closed for file in opened)

@@ -22,6 +22,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import os
 import sys
 import time
 from array import array
@@ -100,7 +101,9 @@ class Probe:
             "stage_peak_mb": _mb(_status("VmHWM")),
             "t_s": round(time.perf_counter() - self.started, 1),
         }
-        row.update({name: _mb(value) for name, value in sizes().items()})
+        row.update(  # MB, counts as they are
+            {k: v if k.endswith("_count") else _mb(v) for k, v in sizes().items()}
+        )
         self.rows.append(row)
         print(json.dumps(row), flush=True)
         _reset_peak()
@@ -132,7 +135,7 @@ class Probe:
 
         def annotations(cls: type[Annotations], *args: Any, **kwargs: Any) -> Annotations:
             made: Annotations = from_decisions(cls, *args, **kwargs)
-            self.record("annotations", lambda: {"messages": deep_size(list(made.messages))})
+            self.record("annotations", lambda: messages_of(made.messages))
             return made
 
         Annotations.from_decisions = classmethod(annotations)  # type: ignore[assignment]
@@ -191,6 +194,15 @@ def decisions_of(result: Any) -> dict[str, int]:
         "decisions_alternatives": deep_size(alternatives),
         "feature_counts": deep_size(result.feature_counts),
     }
+
+
+def messages_of(messages: Any) -> dict[str, int]:
+    """The messages' size in memory, and in their spool's file when they are spooled."""
+    sizes = {"messages": deep_size(messages), "message_count": len(messages)}
+    spool = getattr(messages, "_file", None)
+    if spool is not None:
+        sizes["messages_spool_file"] = os.fstat(spool.fileno()).st_size
+    return sizes
 
 
 def verified_of(verification: Any) -> dict[str, int]:

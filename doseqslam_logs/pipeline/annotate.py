@@ -454,6 +454,25 @@ def _detect(
         return replay(frames, detector, progress, workers)
 
 
+def _write_output(
+    read_path: Path,
+    output: Path,
+    annotations: Annotations,
+    topic: str,
+    options: AnnotateOptions,
+    stage: StageCallback | None,
+) -> WriteSummary:
+    """The write stage: the visualization channels drawn, then the output written."""
+    if options.visualization and not options.sidecar:
+        annotations = replace(
+            annotations, visualization=visualization_of(annotations, read_path, topic)
+        )
+    _announce(stage, "write")
+    return write_annotated_mcap(
+        read_path, output, annotations, sidecar=options.sidecar, output_format=options.output_format
+    )
+
+
 def _annotate(
     read_path: Path,
     log: Path,
@@ -523,15 +542,12 @@ def _annotate(
         metadata.to_entries(),
         None if verification is None else verification.decisions,
         None if verification is None or verification.metric is None else verification.metric.poses,
+        spool=True,
     )
-    if options.visualization and not options.sidecar:
-        annotations = replace(
-            annotations, visualization=visualization_of(annotations, read_path, topic)
-        )
-    _announce(stage, "write")
-    written = write_annotated_mcap(
-        read_path, output, annotations, sidecar=options.sidecar, output_format=options.output_format
-    )
+    try:
+        written = _write_output(read_path, output, annotations, topic, options, stage)
+    finally:
+        annotations.close()
     return AnnotateResult(
         log,
         output,
