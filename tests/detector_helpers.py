@@ -88,3 +88,22 @@ def sequence_decision(
         candidates=pairs,
         method="doseqslam",
     )
+
+
+class DictSpill:
+    """A ByteSpill in a dict, counting what it is asked."""
+
+    def __init__(self) -> None:
+        self.chunks: dict[int, bytes] = {}
+        self.reads = 0
+
+    def write(self, offset: int, data: memoryview) -> None:
+        assert offset not in self.chunks
+        self.chunks[offset] = bytes(data)
+
+    def read_into(self, offset: int, out: memoryview) -> None:
+        self.reads += 1
+        start = max(o for o in self.chunks if o <= offset)
+        chunk = self.chunks[start][offset - start :]
+        assert len(chunk) >= len(out)  # a read never crosses a block
+        out[:] = chunk[: len(out)]

@@ -299,3 +299,46 @@ def test_parameters_are_checked() -> None:
     for bad in ({"tables": 0}, {"tables": 17}, {"radius": -1}, {"posting_cap": 0}):
         with pytest.raises(ValueError):
             PlaceIndexParams(**bad)
+
+
+# -- postings no query can read are dropped -------------------------------------------------------
+
+
+def test_dropping_unreadable_postings_changes_no_result(monkeypatch) -> None:
+    """The same frames into an index that compacts its postings and one that keeps them all:
+    every query gives the same frames and the same scores, bit for bit."""
+    descriptors, _ = loop_log()
+    params = PlaceIndexParams(posting_cap=4, purge_age=4)  # compactions happen early and often
+    compacting = PlaceIndex(params)
+    keeping = PlaceIndex(params)
+    monkeypatch.setattr(keeping._postings, "compact", lambda vocabulary, cap: None)
+    for i, desc in enumerate(descriptors):
+        for index in (compacting, keeping):
+            index.add(i, desc)
+        if i % 7 == 0:
+            for query in (desc, descriptors[i // 2]):
+                for before in (i + 1, i // 2, i - 30):
+                    assert compacting.query(query, before, 10) == keeping.query(query, before, 10)
+    assert compacting.posting_count < keeping.posting_count  # compactions happened
+
+
+def test_postings_held_stay_flat_when_words_come_and_go() -> None:
+    """Words seen once are purged, and their postings dropped: after 2,000 frames of fresh
+    descriptors the index holds the postings of the last frames only."""
+    rng = np.random.default_rng(8)
+    index = PlaceIndex(PlaceIndexParams(tables=2, purge_age=4, min_frames=2))
+    held = []
+    for i in range(2_000):
+        index.add(i, rng.integers(0, 256, (100, DESCRIPTOR_BYTES), dtype=np.uint8))
+        held.append(index.posting_count)
+    assert max(held) <= 2 * 100 * (4 + 2)
+    assert max(held[1000:]) <= max(held[:1000])
+
+
+def test_a_word_seen_on_every_frame_keeps_its_newest_postings_only() -> None:
+    rng = np.random.default_rng(9)
+    landmark = rng.integers(0, 256, (50, DESCRIPTOR_BYTES), dtype=np.uint8)
+    index = PlaceIndex(PlaceIndexParams(posting_cap=8))
+    for i in range(1_000):
+        index.add(i, landmark)
+    assert index.posting_count <= 2 * 50 * 8 + 50

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from detector_helpers import sequence_decision
+from detector_helpers import DictSpill, sequence_decision
 
 from doseqslam_logs.detector import DOSeqSLAM, Parameters, PreparedFrame
 from doseqslam_logs.detector import place_search as place_search_module
@@ -66,8 +66,8 @@ class Route:
         return PreparedFrame(vector, None, seen ^ flips)
 
 
-def run(params: Parameters, frames: int) -> list[SequenceDecision]:
-    detector = DOSeqSLAM(params, segmenter=EveryN())
+def run(params: Parameters, frames: int, store: FrameStore | None = None) -> list[SequenceDecision]:
+    detector = DOSeqSLAM(params, segmenter=EveryN(), store=store)
     route = Route()
     decisions = []
     for t in range(frames):
@@ -174,6 +174,17 @@ def test_the_other_visits_of_a_place_are_the_alternatives(laps) -> None:
         assert len(visits) >= 2  # the place was seen on 4 earlier laps
         for a in d.alternatives:
             assert len(a.match_indices) == len(d.candidates)
+
+
+@pytest.mark.parametrize("search", ["index", "full"])
+def test_the_decisions_are_the_same_with_older_frame_vectors_spilled(laps, search) -> None:
+    """The pipeline's store keeps older blocks of frame vectors in a file (pipeline.frame_spill):
+    the windows read back from it give the same decisions, bit for bit."""
+    spill = DictSpill()
+    store = FrameStore(2048, "uint8", block_frames=64, spill=spill)
+    params = Parameters(place_search=search, alternatives=3)
+    assert run(params, 5 * LAP, store) == laps[search]
+    assert spill.reads and store.nbytes <= 3 * 64 * 2048
 
 
 def test_full_mode_has_no_index_and_the_paper_decision(laps) -> None:

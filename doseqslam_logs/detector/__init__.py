@@ -7,6 +7,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from .difference import FrameStore
 from .doseqslam import DOSeqSLAM, PreparedFrame
 from .events import Alternative, Candidate, SequenceDecision
 from .params import Parameters
@@ -49,8 +50,9 @@ class Detector(Protocol):
     def finish(self) -> list[SequenceDecision]: ...
 
 
-def make_detector(params: Parameters) -> Detector:
-    """The detector `params.method` names."""
+def make_detector(params: Parameters, store: FrameStore | None = None) -> Detector:
+    """The detector `params.method` names; `store`: where it keeps its frame vectors (empty;
+    None: in memory)."""
     if params.method == "seqslam":
-        return SeqSLAM(params)
-    return DOSeqSLAM(params)
+        return SeqSLAM(params, store)
+    return DOSeqSLAM(params, store=store)

@@ -14,7 +14,7 @@ kernel side by side).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Literal
+from typing import Literal, Protocol
 
 import cv2
 import numpy as np
@@ -41,61 +41,121 @@ def quantize(vector: FloatArray) -> npt.NDArray[np.uint8]:
     return quantized
 
 
+class ByteSpill(Protocol):
+    """Where a `FrameStore` puts its older blocks: bytes written once at an offset and read
+    back (pipeline.frame_spill keeps them in an unlinked temporary file; the detector core
+    does no file I/O of its own)."""
+
+    def write(self, offset: int, data: memoryview) -> None:
+        """Keep `data` at `offset` (each offset is written once)."""
+
+    def read_into(self, offset: int, out: memoryview) -> None:
+        """Fill `out` with the bytes written from `offset` on."""
+
+
 class FrameStore:
-    """Append-only storage of equal-length frame vectors."""
+    """Append-only storage of equal-length frame vectors.
+
+    With a `spill`, only the newest `resident_blocks` full blocks (and the one being filled)
+    stay in memory; older blocks are written to the spill and read back when a search looks
+    at them, so the store's memory stays flat however long the log (the indexed place search
+    reads a few windows per sequence). The values read are the values stored.
+    """
 
     def __init__(
-        self, dimension: int, precision: Precision = "float32", block_frames: int = 4096
+        self,
+        dimension: int,
+        precision: Precision = "float32",
+        block_frames: int = 4096,
+        spill: ByteSpill | None = None,
+        resident_blocks: int = 2,
     ) -> None:
         self.dimension = dimension
         self.precision = precision
         self.dtype = np.uint8 if precision == "uint8" else np.float32
         self.block_frames = block_frames
-        self._blocks: list[npt.NDArray[np.generic]] = []
+        self.spill = spill
+        self.resident_blocks = resident_blocks
+        self._blocks: list[npt.NDArray[np.generic] | None] = []  # None: in the spill
         self._count = 0
 
     def __len__(self) -> int:
         return self._count
 
+    @property
+    def block_bytes(self) -> int:
+        return self.block_frames * self.dimension * self._itemsize
+
+    @property
+    def _itemsize(self) -> int:
+        return int(np.dtype(self.dtype).itemsize)
+
     def append(self, vector: FloatArray) -> int:
         """Store one vector (quantized if the store is uint8); returns its index."""
         offset = self._count % self.block_frames
         if offset == 0:
+            self._spill_old_blocks()
             self._blocks.append(np.empty((self.block_frames, self.dimension), self.dtype))
-        self._blocks[-1][offset] = quantize(vector) if self.precision == "uint8" else vector
+        block = self._blocks[-1]
+        assert block is not None  # the newest block is never spilled
+        block[offset] = quantize(vector) if self.precision == "uint8" else vector
         self._count += 1
         return self._count - 1
+
+    def _spill_old_blocks(self) -> None:
+        """Before a new block: full blocks beyond the newest `resident_blocks` go to the spill."""
+        if self.spill is None:
+            return
+        for number in range(len(self._blocks) - self.resident_blocks):
+            block = self._blocks[number]
+            if block is not None:
+                self.spill.write(number * self.block_bytes, block.data.cast("B"))
+                self._blocks[number] = None
+
+    def _block_rows(self, number: int, offset: int, take: int) -> npt.NDArray[np.generic]:
+        """Rows offset .. offset+take-1 of block `number`: a view, or read from the spill."""
+        block = self._blocks[number]
+        if block is not None:
+            return block[offset : offset + take]
+        assert self.spill is not None
+        row_bytes = self.dimension * self._itemsize
+        start = number * self.block_bytes + offset * row_bytes
+        rows = np.empty((take, self.dimension), self.dtype)
+        self.spill.read_into(start, rows.data.cast("B"))
+        return rows
 
     def rows(self, first: int, last: int) -> npt.NDArray[np.generic]:
         """Stored vectors first..last inclusive as one (n, dimension) array (a copy)."""
         out = np.empty((last - first + 1, self.dimension), self.dtype)
-        for row, index in enumerate(range(first, last + 1)):
-            block, offset = divmod(index, self.block_frames)
-            out[row] = self._blocks[block][offset]
+        row = 0
+        for part in self.span(first, last + 1):
+            out[row : row + len(part)] = part
+            row += len(part)
         return out
 
     def blocks(self, count: int) -> list[npt.NDArray[np.generic]]:
-        """Views of the first `count` stored vectors, block by block."""
-        views = []
-        for start in range(0, count, self.block_frames):
-            block = self._blocks[start // self.block_frames]
-            views.append(block[: min(self.block_frames, count - start)])
-        return views
+        """The first `count` stored vectors, block by block (views of the blocks in memory)."""
+        return self.span(0, count)
 
     def span(self, first: int, stop: int) -> list[npt.NDArray[np.generic]]:
-        """Views of stored vectors first .. stop-1, block by block (no copy)."""
+        """Stored vectors first .. stop-1, block by block (views of the blocks in memory)."""
         views = []
         index = first
         while index < stop:
             block, offset = divmod(index, self.block_frames)
             take = min(self.block_frames - offset, stop - index)
-            views.append(self._blocks[block][offset : offset + take])
+            views.append(self._block_rows(block, offset, take))
             index += take
         return views
 
     @property
     def nbytes(self) -> int:
-        return sum(b.nbytes for b in self._blocks)
+        """Bytes of the blocks in memory."""
+        return sum(b.nbytes for b in self._blocks if b is not None)
+
+    @property
+    def spilled_bytes(self) -> int:
+        return sum(self.block_bytes for b in self._blocks if b is None)
 
 
 def sad_rows(queries: npt.NDArray[np.generic], store: FrameStore, database_size: int) -> FloatArray:

@@ -86,6 +86,21 @@ class _Sequence:
         return self.last - self.first + 1
 
 
+def default_store(params: Parameters) -> FrameStore:
+    """An in-memory store for the parameters' frame vectors."""
+    return FrameStore(params.image_width * params.image_height, params.difference_precision)
+
+
+def check_store(store: FrameStore, params: Parameters) -> FrameStore:
+    """`store` when it is empty and holds the parameters' frame vectors; else ValueError."""
+    dimension = params.image_width * params.image_height
+    if len(store) or store.dimension != dimension or store.precision != params.difference_precision:
+        raise ValueError(
+            f"the frame store must be empty, of {dimension} {params.difference_precision} values"
+        )
+    return store
+
+
 def weighted_decision(previous: float | None, gamma: float, following: float | None) -> float:
     """f = (gamma_{k-1} + 4 gamma_k + gamma_{k+1}) / 6, renormalized over the gammas that exist."""
     terms = [
@@ -102,12 +117,17 @@ class DOSeqSLAM:
     method = "doseqslam"
 
     def __init__(
-        self, params: Parameters | None = None, segmenter: Segmenter | None = None
+        self,
+        params: Parameters | None = None,
+        segmenter: Segmenter | None = None,
+        store: FrameStore | None = None,
     ) -> None:
-        """`segmenter` replaces the one the parameters name (tests fix sequence boundaries)."""
+        """`segmenter` replaces the one the parameters name (tests fix sequence boundaries);
+        `store`, an empty one for the parameters' frame vectors, the in-memory store (the
+        pipeline passes one that spills older vectors to a file)."""
         self.params = params or Parameters()
-        self._store = FrameStore(
-            self.params.image_width * self.params.image_height, self.params.difference_precision
+        self._store = (
+            default_store(self.params) if store is None else check_store(store, self.params)
         )
         self._timestamps = array("q")
         self._segmenter = segmenter or make_segmenter(self.params)

@@ -39,15 +39,19 @@ Posting cap. A word's postings are walked newest first, at most `posting_cap` of
 Dropping the words whose lists outgrow a cap, as stop words, would on a route driven lap after
 lap end up dropping every landmark; instead a frequent word keeps its newest postings (the
 latest visit of a place is as good a loop closure as the first) and idf weighs it down. Older
-postings stay in memory but are never read.
+postings can never be read again, nor can those of a freed word: when the postings' arrays are
+full they are dropped first (`_Postings.compact`), the rest keeping their order, so results do
+not change.
 
 Cost. A query of n descriptors reads at most n x tables x bucket_slots words and
 n x posting_cap postings, however long the log; only a binary search over the frames grows
 (log N). The lists are walked in lockstep, one vectorized step per depth, and the postings
 found are sorted once, which orders them by frame for the scoring.
 
-Memory. What grows per frame: at most `POSTING_BYTES` per distinct word of the frame, and
-`FRAME_BYTES` (up to twice that allocated, as capacities double). The rest is capped
+Memory. What grows per frame: `FRAME_BYTES`, and the postings a query can still read, at most
+`POSTING_BYTES` per distinct word of the frame (up to twice that allocated, as capacities
+double); those of words purged or pushed out of their buckets, and those beyond the newest
+`posting_cap` of a word, are dropped. The rest is capped
 (`PlaceIndexParams.fixed_bytes`): the hash tables have a fixed size, and the vocabulary is at
 most the number of slots. `memory_bound` states both.
 
@@ -200,6 +204,17 @@ class _Growable:
         grown = np.zeros((capacity, *self.data.shape[1:]), dtype=self.data.dtype)
         grown[: self.size] = self.data[: self.size]
         self.data = grown
+
+    def reserve(self, capacity: int) -> None:
+        """Room for at least `capacity` rows (up to the limit) without growing again."""
+        if capacity > len(self.data):
+            self._grow(capacity)
+
+    def keep(self, mask: npt.NDArray[np.bool_]) -> None:
+        """Keep only the rows where `mask` (one per row held) is set, in their order."""
+        kept = self.data[: self.size][mask]
+        self.size = len(kept)
+        self.data[: self.size] = kept
 
     @property
     def view(self) -> npt.NDArray[Any]:
@@ -369,9 +384,22 @@ class _Postings:
     def columns(self) -> list[_Growable]:
         return [self.next, self.count, self.frame_index, self.frame_start, self.frame_size]
 
-    def add_frame(self, frame_index: int, words: IntArray, vocabulary: _Vocabulary) -> None:
-        """Prepend a posting of the new frame to the list of each of its distinct words."""
+    def add_frame(
+        self, frame_index: int, words: IntArray, vocabulary: _Vocabulary, cap: int
+    ) -> None:
+        """Prepend a posting of the new frame to the list of each of its distinct words.
+
+        When they do not fit, the postings no query can read any more are dropped first
+        (`compact`), and the arrays grow only when half of them is still held after that: a
+        compaction comes after at least half a capacity of new postings, so its cost per
+        posting is bounded, and memory follows what can be read, not what was ever added.
+        """
         unique, counts = np.unique(words, return_counts=True)
+        if self.next.size + len(unique) > len(self.next.data):
+            self.compact(vocabulary, cap)
+            room = max(2 * (self.next.size + len(unique)), len(self.next.data))
+            self.next.reserve(room)
+            self.count.reserve(room)
         self.frame_start.extend([self.next.size])
         self.frame_index.extend([frame_index])
         self.frame_size.extend([len(words)])
@@ -379,6 +407,41 @@ class _Postings:
         self.count.extend(np.minimum(counts, 255))
         vocabulary.head.data[unique] = entries
         vocabulary.df.data[unique] += 1
+
+    def readable(self, vocabulary: _Vocabulary, cap: int) -> npt.NDArray[np.bool_]:
+        """Per posting: whether a query can still read it, that is whether it is among the
+        newest `cap` of a live word's list (the sentinel included). Postings are only ever
+        prepended and a freed word's list is emptied, so one that is not can never be again."""
+        readable = np.zeros(self.next.size, dtype=bool)
+        readable[NO_POSTING] = True
+        entries = vocabulary.head.view.astype(np.int64)
+        for _ in range(cap):
+            entries = entries[entries != NO_POSTING]
+            if len(entries) == 0:
+                break
+            readable[entries] = True
+            entries = np.take(self.next.data, entries).astype(np.int64)
+        return readable
+
+    def compact(self, vocabulary: _Vocabulary, cap: int) -> None:
+        """Drop the postings no query can read (`readable`) and number the rest in order.
+
+        Order is kept, so postings stay sorted by frame and queries sum the same terms in the
+        same order: every result is the same, bit for bit. A kept posting whose older neighbour
+        was dropped ends its list (a query never reads that far). A frame left with no posting
+        starts where the next frame does, so `frames_of` still finds each posting's frame.
+        """
+        readable = self.readable(vocabulary, cap)
+        # Kept postings before each one (its new number when kept); int32 as the links are.
+        before = np.zeros(len(readable) + 1, dtype=np.int32)
+        np.cumsum(readable, dtype=np.int32, out=before[1:])
+        links = self.next.view[readable]
+        self.next.keep(readable)
+        self.count.keep(readable)
+        self.next.view[:] = np.where(readable[links], before[links], NO_POSTING)
+        heads = vocabulary.head.view
+        heads[:] = before[heads]
+        self.frame_start.view[:] = before[self.frame_start.view]
 
     def walk(self, heads: IntArray, cap: int, limit: int) -> tuple[IntArray, IntArray]:
         """(list number, posting) pairs of the newest `cap` postings of each list that are
@@ -454,7 +517,7 @@ class PlaceIndex:
         unmatched = words < 0
         born = vocabulary.allocate(desc[unmatched], position)
         words[unmatched] = born
-        self._postings.add_frame(frame_index, words, vocabulary)
+        self._postings.add_frame(frame_index, words, vocabulary, self.params.posting_cap)
         # Postings first, then the buckets: inserting may free a word this frame uses, and
         # freeing drops the word's postings, this frame's included.
         vocabulary.insert(born, desc[unmatched])

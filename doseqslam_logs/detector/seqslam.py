@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .difference import FrameStore, sad_rows
-from .doseqslam import PreparedFrame
+from .doseqslam import PreparedFrame, check_store, default_store
 from .enhance import enhance
 from .events import Candidate, SequenceDecision
 from .params import Parameters
@@ -34,10 +34,11 @@ class SeqSLAM:
     method = "seqslam"
     feature_detector = "none"
 
-    def __init__(self, params: Parameters | None = None) -> None:
+    def __init__(self, params: Parameters | None = None, store: FrameStore | None = None) -> None:
+        """`store`: as DOSeqSLAM's."""
         self.params = params or Parameters(method="seqslam")
-        self._store = FrameStore(
-            self.params.image_width * self.params.image_height, self.params.difference_precision
+        self._store = (
+            default_store(self.params) if store is None else check_store(store, self.params)
         )
         self._timestamps = array("q")
         self._kappa_ns = round(self.params.kappa_s * 1e9)

@@ -15,10 +15,12 @@ the next requests, for nearby frames, are answered from it and only decoded.
 
 from __future__ import annotations
 
-from collections import OrderedDict, defaultdict
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
+
+import numpy as np
 
 from ..annotations.records import NO_STAMP, FrameTimes
 from ..sources import open_source
@@ -67,10 +69,6 @@ class LogFrameReader:
         self.cache_bytes = cache_bytes
         self.reads = 0  # ranged reads of the log (for benchmarks)
         self._source = open_source(self.path)
-        self._by_key: dict[tuple[int, int], list[int]] = defaultdict(list)
-        log_times, stamps = frame_times.log_times_ns.tolist(), frame_times.header_stamps_ns.tolist()
-        for index, key in enumerate(zip(log_times, stamps, strict=True)):
-            self._by_key[key].append(index)
         self._messages: OrderedDict[int, ImageMessage] = OrderedDict()
         self._bytes = 0
 
@@ -98,17 +96,26 @@ class LogFrameReader:
         missing = set(wanted)
         start, end = self.times.log_time(first), self.times.log_time(last) + 1
         for message in self._source.image_messages(self.topic, start, end):
-            stamp = NO_STAMP if message.header_stamp_ns is None else message.header_stamp_ns
-            for index in self._by_key.get((message.log_time_ns, stamp), ()):
-                if first <= index <= last:
-                    self._keep(index, message)
-                    if index in missing:  # the read is in index (log-time) order
-                        missing.discard(index)
-                        yield index, decode_gray(message, self.max_pixels)
+            for index in self._frames_of(message, first, last):
+                self._keep(index, message)
+                if index in missing:  # the read is in index (log-time) order
+                    missing.discard(index)
+                    yield index, decode_gray(message, self.max_pixels)
         if missing:
             raise LookupError(
                 f"{self.path}: frames {sorted(missing)[:5]} of {self.topic} not found again"
             )
+
+    def _frames_of(self, message: ImageMessage, first: int, last: int) -> list[int]:
+        """The frames first..last recorded with this message's log time and header stamp, in
+        order (found in the read's window of `FrameTimes`: no per-frame table is built, which
+        on a long log would cost hundreds of bytes a frame in each reader)."""
+        stamp = NO_STAMP if message.header_stamp_ns is None else message.header_stamp_ns
+        window = slice(first, last + 1)
+        same = (self.times.log_times_ns[window] == message.log_time_ns) & (
+            self.times.header_stamps_ns[window] == stamp
+        )
+        return [first + int(offset) for offset in np.flatnonzero(same)]
 
     def _keep(self, index: int, message: ImageMessage) -> None:
         old = self._messages.pop(index, None)

@@ -56,6 +56,7 @@ from ..sources import (
 from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile
+from .message_spool import SpooledMessages, in_order
 from .visual_encoders import visual_encoder_for_profile
 from .visualization import Visualization, VisualWriter
 
@@ -96,18 +97,31 @@ class Annotations:
         metadata: Mapping[str, str],
         verifications: Verifications = None,
         metric: MetricPoses = None,
+        spool: bool = False,
     ) -> Annotations:
         """Loop-closure and sequence messages for these `SequenceDecision`s (and their
-        verification and metric poses, None when it was off).
+        verification and metric poses, None when it was off). With `spool`, the messages are
+        kept in a temporary file until written (`SpooledMessages`: memory flat in their
+        number); `close` removes it.
 
         Raises ValueError when a decision names a frame outside `frame_times`.
         """
         v = verifications
-        messages = [
-            *loop_closure_messages(decisions, frame_times, method, parameters_hash, v, metric),
-            *sequence_messages(decisions, frame_times, method, parameters_hash, v),
-        ]
+
+        def one_at_a_time() -> Iterator[TimedMessage]:  # the order of the lists as a whole
+            hash_ = parameters_hash
+            for decision in decisions:
+                yield from loop_closure_messages([decision], frame_times, method, hash_, v, metric)
+            for decision in decisions:
+                yield from sequence_messages([decision], frame_times, method, hash_, v)
+
+        messages = SpooledMessages(one_at_a_time()) if spool else list(one_at_a_time())
         return cls(messages, metadata, frame_times)
+
+    def close(self) -> None:
+        """Removes the messages' temporary file, if they are spooled (`from_decisions`)."""
+        if isinstance(self.messages, SpooledMessages):
+            self.messages.close()
 
 
 @dataclass(frozen=True)
@@ -301,8 +315,8 @@ class _Annotator:
         self.visuals = visuals
         self.encoder = encoder
         # Sorting by (log time, type, index) fixes the order whatever order the caller used.
-        self.pending = sorted(messages, key=lambda m: m.sort_key)
-        self.position = 0
+        self.pending = in_order(messages)
+        self.next: TimedMessage | None = next(self.pending, None)
         self.channel_ids: dict[str, int] = {}
         self.written: Counter[str] = Counter()
 
@@ -310,12 +324,11 @@ class _Annotator:
         """Writes our messages with log time <= log_time_ns (all of them for None)."""
         if self.visuals is not None:
             self.visuals.write_until(log_time_ns)
-        while self.position < len(self.pending):
-            message = self.pending[self.position]
-            if log_time_ns is not None and message.log_time_ns > log_time_ns:
+        while self.next is not None:
+            if log_time_ns is not None and self.next.log_time_ns > log_time_ns:
                 return
-            self._write(message)
-            self.position += 1
+            self._write(self.next)
+            self.next = next(self.pending, None)
 
     def input_channel(
         self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]

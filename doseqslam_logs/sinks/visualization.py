@@ -109,7 +109,8 @@ def caption(record: LoopClosureRecord) -> str:
 
 def visual_loops(messages: Iterable[TimedMessage]) -> list[VisualLoop]:
     """The reported loop closures among our messages, in query log-time order."""
-    records = [m.record for m in messages if isinstance(m.record, LoopClosureRecord)]
+    # One at a time: the messages may be spooled (sinks.message_spool), read back as they go.
+    records = (m.record for m in messages if isinstance(m.record, LoopClosureRecord))
     loops = [
         VisualLoop(
             r.query.log_time_ns,
