@@ -5,6 +5,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import errno
 import functools
 import hashlib
@@ -454,6 +456,15 @@ def _detect(
         return replay(frames, detector, progress, workers)
 
 
+def release_freed_memory() -> None:
+    """Hand the heap pages freed so far back to the system: glibc keeps them resident
+    otherwise, so the later stages' peak would stand on the replay's (the detector freed at
+    30 minutes of the 10 Hz hour: resident memory 271 -> 287 MB, not down). A no-op where
+    the C library has no malloc_trim."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+
+
 def _write_output(
     read_path: Path,
     output: Path,
@@ -505,6 +516,7 @@ def _annotate(
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
+    release_freed_memory()
     count_missing(counts, promise, log, topic)
     refuse_no_frame(counts, recovery, log, topic, _window(options))
     frame_times = recorder.frame_times()

@@ -60,8 +60,9 @@ the previous one's last accepted pair (`Hint`) and looks first where it puts the
 first query at the same speed: a tracked check there (proposal CONTINUED, -1), before the
 detector's own search. Threads verify fixed chains of CHAIN_DECISIONS decisions, each handing
 its hint to the next within the chain, so the results are the same on any number of threads.
-On the first 20 minutes of the 10 Hz hour: FIGURES (docs/results.md, "The previous sequence's
-place, continued").
+On the first 20 minutes of the 10 Hz hour it accepted 846 pairs instead of 812 for 41,776
+frame pairs checked instead of 42,503 (docs/results.md, "Keyframes in the index, and the
+previous sequence's place first").
 """
 
 from __future__ import annotations
