@@ -16,14 +16,14 @@ import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from types import TracebackType
 
+from ..closing import Closing
 from ..detector import Parameters
 from ..detector.difference import FrameStore
 from ..errors import OutputError
 
 
-class FileSpill:
+class FileSpill(Closing):
     """Bytes at offsets of an unlinked temporary file. Use as a context manager."""
 
     def __init__(self, directory: str | Path | None = None) -> None:
@@ -60,17 +60,6 @@ class FileSpill:
 
     def close(self) -> None:
         self._file.close()
-
-    def __enter__(self) -> FileSpill:
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 @contextmanager

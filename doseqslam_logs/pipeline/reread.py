@@ -18,11 +18,11 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from types import TracebackType
 
 import numpy as np
 
 from ..annotations.records import NO_STAMP, FrameTimes
+from ..closing import Closing
 from ..sources import open_source
 from ..sources.base import ImageMessage
 from ..sources.image_folder import read_gray_file
@@ -50,7 +50,7 @@ def runs(indices: Sequence[int], max_gap: int = MAX_GAP_FRAMES) -> list[list[int
     return grouped
 
 
-class LogFrameReader:
+class LogFrameReader(Closing):
     """Decoded gray frames of one camera topic of a log, by frame index (a `FrameLoader`).
 
     Use as a context manager: it keeps its own reader of the log open.
@@ -129,17 +129,6 @@ class LogFrameReader:
 
     def close(self) -> None:
         self._source.close()
-
-    def __enter__(self) -> LogFrameReader:
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 class FolderFrameReader:

@@ -19,16 +19,16 @@ import pickle
 import tempfile
 from array import array
 from collections.abc import Iterable, Iterator, Sequence
-from types import TracebackType
 from typing import overload
 
 import numpy as np
 
 from ..annotations.records import TimedMessage
+from ..closing import Closing
 from ..errors import OutputError
 
 
-class SpooledMessages(Sequence[TimedMessage]):
+class SpooledMessages(Sequence[TimedMessage], Closing):
     """Messages in a temporary file, in the order given; `in_order()` sorts them by
     `TimedMessage.sort_key` (stable, as `sorted` is). Close it (or use it as a context manager)
     when done."""
@@ -93,17 +93,6 @@ class SpooledMessages(Sequence[TimedMessage]):
         file = getattr(self, "_file", None)  # absent when it could not be created
         if file is not None:
             file.close()
-
-    def __enter__(self) -> SpooledMessages:
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def in_order(messages: Sequence[TimedMessage]) -> Iterator[TimedMessage]:
