@@ -340,6 +340,7 @@ FLOAT_PARAMETERS = [
     "velocity_step",
     "threshold",
     "match_ratio",
+    "place_index_interval_s",
 ]
 FLOAT_VERIFICATION = [
     "ratio",

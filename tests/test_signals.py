@@ -353,7 +353,7 @@ def test_an_error_in_one_verification_thread_is_raised_not_the_others_stop(
     frame pair; the error is what the stage raises, not their being stopped."""
     stopped = []
 
-    def verify(self: Verifier, decision: object) -> object:
+    def verify(self: Verifier, decision: object, hint: object = None) -> object:
         if decision == "bad":
             time.sleep(0.2)  # the other thread is inside its long decision by now
             raise LookupError("the frame loader did not return frames [7]")
@@ -364,6 +364,7 @@ def test_an_error_in_one_verification_thread_is_raised_not_the_others_stop(
         return decision
 
     monkeypatch.setattr(Verifier, "verify", verify)
+    monkeypatch.setattr(stage, "CHAIN_DECISIONS", 1)  # one decision a thread, as they say
     with pytest.raises(LookupError, match="did not return"):
         verify_in_threads(
             ["long", "bad"],  # type: ignore[list-item]  # only verify() sees them
@@ -382,7 +383,7 @@ def test_an_interrupt_while_the_verification_threads_start_stops_those_started(
     and the interpreter's exit would wait for it to finish the stage."""
     ended = []
 
-    def verify(self: Verifier, decision: object) -> object:
+    def verify(self: Verifier, decision: object, hint: object = None) -> object:
         try:
             for _ in range(1000):  # a long decision: checks between frame pairs
                 self._check_cancelled()
@@ -401,6 +402,7 @@ def test_an_interrupt_while_the_verification_threads_start_stops_those_started(
             return super().submit(*args, **kwargs)
 
     monkeypatch.setattr(Verifier, "verify", verify)
+    monkeypatch.setattr(stage, "CHAIN_DECISIONS", 1)  # one decision a thread, as they say
     monkeypatch.setattr(stage, "ThreadPoolExecutor", InterruptedPool)
     with pytest.raises(KeyboardInterrupt):
         verify_in_threads(
