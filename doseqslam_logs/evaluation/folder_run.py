@@ -6,6 +6,7 @@ verification is None), and both the raw and the verified decisions scored at the
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from contextlib import nullcontext
@@ -24,6 +25,7 @@ from ..pipeline.feature_health import (
     check_feasibility,
     run_feature_health,
 )
+from ..pipeline.feature_spill import FeatureSpill
 from ..pipeline.replay import ReplayResult, replay
 from ..pipeline.reread import FolderFrameReader
 from ..sources.image_folder import folder_frames, folder_time_ns, list_images
@@ -188,14 +190,19 @@ def evaluate_folder(
         expected(len(files))
     if stage is not None:
         stage("replay")
-    result = replay(folder_frames(images, fps, max_pixels), make_detector(params), progress)
-    if stage is not None and verification is not None:
-        stage("verify")
-    checked = (
-        None
-        if verification is None
-        else _verify(files, result, verification, intrinsics, max_pixels)
-    )
+    with contextlib.ExitStack() as stack:
+        features = None  # verification's, extracted as the replay decodes the images
+        if verification is not None:
+            features = stack.enter_context(FeatureSpill(verification))
+        frames = folder_frames(images, fps, max_pixels)
+        result = replay(frames, make_detector(params), progress, side=features)
+        if stage is not None and verification is not None:
+            stage("verify")
+        checked = (
+            None
+            if verification is None
+            else _verify(files, result, verification, intrinsics, max_pixels, features)
+        )
     scores = _scores(result, checked, truth, params, fps, tolerance)
     checks = None if checked is None else checked.checks
     accepted = result.loop_closures if checked is None else checked.stats.accepted
@@ -238,11 +245,17 @@ def _verify(
     params: VerificationParameters,
     intrinsics: Intrinsics | None,
     max_pixels: int,
+    features: FeatureSpill | None,
 ) -> FolderVerification:
     start = time.perf_counter()
     reader = FolderFrameReader(files, max_pixels)  # stateless: one for every thread
     checked, stats = verify_in_threads(
-        result.decisions, lambda: nullcontext(reader), params, intrinsics, VERIFY_THREADS
+        result.decisions,
+        lambda: nullcontext(reader),
+        params,
+        intrinsics,
+        VERIFY_THREADS,
+        stored_features=None if features is None else features.get,
     )
     wall_s = time.perf_counter() - start
     feasible = check_feasibility(checked)

@@ -66,6 +66,7 @@ from .decode import (
     decoded_frames,
 )
 from .feature_health import FeatureHealth, check_feasibility, run_feature_health
+from .feature_spill import FeatureSpill
 from .frame_spill import spilled_frame_store
 from .metric_edges import MetricEdges, metric_edges
 from .replay import ReplayResult, replay
@@ -182,8 +183,10 @@ def verify_decisions(
     result: ReplayResult,
     frame_times: FrameTimes,
     options: AnnotateOptions,
+    features: FeatureSpill | None = None,
 ) -> Verification | None:
-    """The verification stage over a finished replay (None when it is off)."""
+    """The verification stage over a finished replay (None when it is off); `features`: the
+    frames' features the replay extracted, if it did."""
     if options.verification is None:
         return None
     intrinsics, origin = options.intrinsics, "--intrinsics"
@@ -199,6 +202,7 @@ def verify_decisions(
         intrinsics,
         options.workers,
         options.verification_cache_bytes,
+        None if features is None else features.get,
     )
     verified = {item.decision.sequence_id: item for item in checked}
     wall_s = time.perf_counter() - start
@@ -447,13 +451,15 @@ def _detect(
     workers: int,
     progress: Callable[[int], None] | None,
     stage: StageCallback | None,
+    features: FeatureSpill | None,
 ) -> ReplayResult:
-    """The replay stage. Its detector, whose place index and frame vectors grow with the log
-    (hundreds of MB on a 4-hour log), is freed when this returns, before the later stages."""
+    """The replay stage (which also fills `features`, when given). Its detector, whose place
+    index and frame vectors grow with the log (hundreds of MB on a 4-hour log), is freed when
+    this returns, before the later stages."""
     with spilled_frame_store(params) as store:
         detector = make_detector(params, store)
         _announce(stage, "replay")
-        return replay(frames, detector, progress, workers)
+        return replay(frames, detector, progress, workers, features)
 
 
 def release_freed_memory() -> None:
@@ -484,20 +490,20 @@ def _write_output(
     )
 
 
-def _annotate(
+def _replay_log(
     read_path: Path,
     log: Path,
-    output: Path,
     params: Parameters,
     options: AnnotateOptions,
     callbacks: _Callbacks,
     recovery: SalvageReport | None,
-) -> AnnotateResult:
-    """annotate_log on `read_path`: the log itself, or the copy that --recover made of it."""
+    counts: FrameCounts,
+    recorder: _TimesRecorder,
+    features: FeatureSpill | None,
+) -> tuple[str, ReplayResult, Promise | None, int]:
+    """The camera topic, the replay of its frames, what the log promised and its unattributed
+    messages."""
     progress, expected, stage = callbacks
-    digest = _hash_in_background(log)
-    counts = FrameCounts()
-    recorder = _TimesRecorder()
     with open_source(read_path) as source:
         topic = pick_image_topic(source, options.topic)
         if recovery is not None and recovery.lost_by_topic.get(topic):
@@ -512,17 +518,41 @@ def _annotate(
         decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
         frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
         try:
-            result = _detect(params, recorder(frames), options.workers, progress, stage)
+            result = _detect(params, recorder(frames), options.workers, progress, stage, features)
         except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
             exc.args = (f"{log}: {exc}", *exc.args[1:])
             raise
-    release_freed_memory()
-    count_missing(counts, promise, log, topic)
-    refuse_no_frame(counts, recovery, log, topic, _window(options))
-    frame_times = recorder.frame_times()
-    if options.verification is not None:
-        _announce(stage, "verify")
-    verification = verify_decisions(read_path, topic, result, frame_times, options)
+    return topic, result, promise, unattributed
+
+
+def _annotate(
+    read_path: Path,
+    log: Path,
+    output: Path,
+    params: Parameters,
+    options: AnnotateOptions,
+    callbacks: _Callbacks,
+    recovery: SalvageReport | None,
+) -> AnnotateResult:
+    """annotate_log on `read_path`: the log itself, or the copy that --recover made of it."""
+    stage = callbacks[2]
+    digest = _hash_in_background(log)
+    counts = FrameCounts()
+    recorder = _TimesRecorder()
+    with contextlib.ExitStack() as stack:
+        features = None
+        if options.verification is not None:  # extracted as the replay decodes the frames
+            features = stack.enter_context(FeatureSpill(options.verification))
+        topic, result, promise, unattributed = _replay_log(
+            read_path, log, params, options, callbacks, recovery, counts, recorder, features
+        )
+        release_freed_memory()
+        count_missing(counts, promise, log, topic)
+        refuse_no_frame(counts, recovery, log, topic, _window(options))
+        frame_times = recorder.frame_times()
+        if options.verification is not None:
+            _announce(stage, "verify")
+        verification = verify_decisions(read_path, topic, result, frame_times, options, features)
     if verification is not None:
         _announce(stage, "metric")
         verification.metric = metric_edges(

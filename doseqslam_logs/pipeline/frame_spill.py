@@ -26,12 +26,15 @@ from ..errors import OutputError
 class FileSpill(Closing):
     """Bytes at offsets of an unlinked temporary file. Use as a context manager."""
 
-    def __init__(self, directory: str | Path | None = None) -> None:
+    def __init__(
+        self, directory: str | Path | None = None, what: str = "the frame vectors"
+    ) -> None:
+        self._what = what  # named in the errors
         try:
             self._file = tempfile.TemporaryFile(dir=directory)  # noqa: SIM115 (closed by close)
         except OSError as exc:
             raise OutputError(
-                f"cannot create a temporary file for the frame vectors: {exc.strerror or exc}"
+                f"cannot create a temporary file for {what}: {exc.strerror or exc}"
             ) from exc
         self.bytes = 0  # bytes written so far
 
@@ -44,7 +47,7 @@ class FileSpill(Closing):
                 done += os.pwrite(fd, data[done:], offset + done)
         except OSError as exc:
             raise OutputError(
-                f"cannot write the frame vectors' temporary file: {exc.strerror or exc}"
+                f"cannot write the temporary file of {self._what}: {exc.strerror or exc}"
             ) from exc
         self.bytes = max(self.bytes, offset + len(data))
 
@@ -55,7 +58,7 @@ class FileSpill(Closing):
         while done < len(out):
             got = os.preadv(fd, [out[done:]], offset + done)
             if got == 0:
-                raise OSError(f"frame vectors' temporary file: {len(out) - done} bytes missing")
+                raise OSError(f"temporary file of {self._what}: {len(out) - done} bytes missing")
             done += got
 
     def close(self) -> None:

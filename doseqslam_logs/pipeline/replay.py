@@ -5,6 +5,11 @@ per-frame `detector.prepare` (frame vector, features), and the sequential detect
 detector runs on the calling thread; with workers > 1 a reader thread iterates `frames` and a
 thread pool runs `prepare`, so the calling thread does nothing but the detector's own work.
 OpenCV releases the GIL, so both cores work. The decisions do not depend on `workers`.
+
+A later stage that needs something of every decoded frame (verification's features:
+pipeline.feature_spill) hands the replay a `FrameSideWork`: its `compute` runs beside
+`prepare` on the pool, its `keep` on the calling thread in frame order, so the frames are
+decoded once.
 """
 
 from __future__ import annotations
@@ -16,10 +21,12 @@ from array import array
 from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any, Generic, Protocol, TypeVar
 
 from .. import waiting
 from ..detector import Detector, PreparedFrame, SequenceDecision
 from ..sources.frame import Frame
+from ..verification.geometry import GrayImage
 
 ProgressCallback = Callable[[int], None]
 
@@ -56,6 +63,32 @@ class ReplayResult:
         return self.frames / self.wall_time_s if self.wall_time_s > 0 else 0.0
 
 
+T = TypeVar("T")
+
+
+class FrameSideWork(Protocol, Generic[T]):
+    """Work on each decoded frame beside the detector's `prepare`."""
+
+    def compute(self, gray: GrayImage) -> T:
+        """On a prepare thread; a pure function of the frame."""
+        ...
+
+    def keep(self, index: int, result: T) -> None:
+        """On the detector's thread, for frame 0, 1, ... in order."""
+        ...
+
+
+class _NoSideWork:
+    def compute(self, gray: GrayImage) -> None:
+        return None
+
+    def keep(self, index: int, result: None) -> None:
+        pass
+
+
+_Prepared = tuple[PreparedFrame, Any]  # detector.prepare, side.compute
+
+
 class _End:
     """Queue marker: the frames ran out, or iterating them raised `error`."""
 
@@ -63,7 +96,7 @@ class _End:
         self.error = error
 
 
-_Item = tuple[int, "Future[PreparedFrame]"]  # (detector timestamp, prepare result)
+_Item = tuple[int, "Future[_Prepared]"]  # (detector timestamp, prepare results)
 
 
 class _Reader:
@@ -80,13 +113,13 @@ class _Reader:
     def __init__(
         self,
         frames: Iterable[Frame],
-        detector: Detector,
+        prepare: Callable[[GrayImage], _Prepared],
         pool: ThreadPoolExecutor,
         in_flight: int,
         lookahead: int,
     ) -> None:
         self._frames = frames
-        self._detector = detector
+        self._prepare = prepare
         self._pool = pool
         self._slots = threading.BoundedSemaphore(in_flight)
         self._queue: queue.Queue[_Item | _End] = queue.Queue(lookahead)
@@ -111,10 +144,10 @@ class _Reader:
 
         return self._wait(attempt)
 
-    def _submit(self, frame: Frame) -> Future[PreparedFrame] | None:
+    def _submit(self, frame: Frame) -> Future[_Prepared] | None:
         if not self._wait(lambda: self._slots.acquire(timeout=_POLL_S)):
             return None
-        future = self._pool.submit(self._detector.prepare, frame.image)
+        future = self._pool.submit(self._prepare, frame.image)
         future.add_done_callback(lambda _: self._slots.release())
         return future
 
@@ -150,19 +183,28 @@ class _Reader:
 
 
 def prepared_frames(
-    frames: Iterable[Frame], detector: Detector, workers: int, lookahead: int = LOOKAHEAD_FRAMES
-) -> Generator[tuple[int, PreparedFrame], None, None]:
-    """(timestamp, `detector.prepare` of the image) of each frame, in order.
+    frames: Iterable[Frame],
+    detector: Detector,
+    workers: int,
+    lookahead: int = LOOKAHEAD_FRAMES,
+    side: FrameSideWork[Any] | None = None,
+) -> Generator[tuple[int, _Prepared], None, None]:
+    """(timestamp, (`detector.prepare`, `side.compute`) of the image) of each frame, in order.
 
     With workers > 1, a reader thread iterates (reads and decodes) the frames and a pool of
     `workers` threads prepares up to `lookahead` of them ahead of the consumer (see `_Reader`).
     """
+    work: FrameSideWork[Any] = _NoSideWork() if side is None else side
+
+    def prepare(gray: GrayImage) -> _Prepared:
+        return detector.prepare(gray), work.compute(gray)
+
     if workers <= 1:
         for frame in frames:
-            yield frame.timestamp_ns, detector.prepare(frame.image)
+            yield frame.timestamp_ns, prepare(frame.image)
         return
     with ThreadPoolExecutor(workers, thread_name_prefix="prepare") as pool:
-        items = _Reader(frames, detector, pool, 2 * workers, lookahead).items()
+        items = _Reader(frames, prepare, pool, 2 * workers, lookahead).items()
         try:
             for timestamp_ns, future in items:
                 yield timestamp_ns, waiting.result(future)
@@ -175,15 +217,17 @@ def replay(
     detector: Detector,
     progress: ProgressCallback | None = None,
     workers: int = 1,
+    side: FrameSideWork[Any] | None = None,
 ) -> ReplayResult:
-    """Push every frame in order, then flush; `progress(frames_done)` after each frame.
+    """Push every frame in order, then flush; `progress(frames_done)` after each frame;
+    `side.keep(index, side.compute(frame))` for each frame, in order, when given.
 
     The decisions do not depend on `workers` (prepare is a pure function of the frame).
     """
     result = ReplayResult(feature_detector=detector.feature_detector)
     start = time.perf_counter()
     waited = 0.0
-    stream = prepared_frames(frames, detector, workers)
+    stream = prepared_frames(frames, detector, workers, side=side)
     try:
         while True:
             asked = time.perf_counter()
@@ -191,7 +235,9 @@ def replay(
             waited += time.perf_counter() - asked
             if item is None:
                 break
-            timestamp_ns, prepared = item
+            timestamp_ns, (prepared, computed) = item
+            if side is not None:
+                side.keep(result.frames, computed)
             result.decisions += detector.push_prepared(timestamp_ns, prepared)
             result.feature_counts.append(prepared.feature_count)
             result.frames += 1

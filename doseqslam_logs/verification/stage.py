@@ -94,6 +94,7 @@ from .params import VerificationParameters
 
 # Sorted frame indices in, (index, gray frame) out for each of them.
 FrameLoader = Callable[[Sequence[int]], Iterator[tuple[int, GrayImage]]]
+StoredFeatures = Callable[[int], FrameFeatures | None]
 
 # Shared by the verification threads. The stage's reads are local (a sequence's windows), so a
 # small cache serves them: on the 10 Hz hour, 64 MB re-read 19 % more frames than 256 MB, in
@@ -201,6 +202,7 @@ class VerificationStats:
     given_up: int = 0  # of the skipped: after their sequence's two hopeless checks
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
     frames_loaded: int = 0  # frames decoded for features (re-reads of evicted frames included)
+    frames_stored: int = 0  # frames whose features came from `Verifier.stored_features`
     load_s: float = 0.0
     features_s: float = 0.0
     pairs_s: float = 0.0
@@ -273,6 +275,9 @@ class Verifier:
     stats: VerificationStats = field(default_factory=VerificationStats)
     # Set by whoever runs the stage to stop it: checked before every frame pair and load.
     cancel: threading.Event = field(default_factory=threading.Event)
+    # Features extracted earlier (by the replay: pipeline.feature_spill), by frame index; a
+    # frame it lacks (None) is loaded and extracted here.
+    stored_features: StoredFeatures | None = None
 
     def __post_init__(self) -> None:
         self._cache = FeatureCache(self.cache_bytes)
@@ -575,11 +580,14 @@ class Verifier:
             raise Cancelled("verification stopped")
 
     def _features(self, indices: list[int]) -> dict[int, FrameFeatures]:
-        """Features of these frames: from the cache, the rest loaded in one call."""
+        """Features of these frames: from the cache, else the store, the rest loaded in one
+        call."""
         found: dict[int, FrameFeatures] = {}
         missing = []
         for index in indices:
             cached = self._cache.get(index)
+            if cached is None:
+                cached = self._stored(index)
             if cached is None:
                 missing.append(index)
             else:
@@ -587,6 +595,17 @@ class Verifier:
         if missing:
             found.update(self._load(missing))
         return found
+
+    def _stored(self, index: int) -> FrameFeatures | None:
+        if self.stored_features is None:
+            return None
+        start = time.perf_counter()
+        features = self.stored_features(index)
+        self.stats.load_s += time.perf_counter() - start
+        if features is not None:
+            self.stats.frames_stored += 1
+            self._cache.put(index, features)
+        return features
 
     def _load(self, indices: list[int]) -> dict[int, FrameFeatures]:
         loaded: dict[int, FrameFeatures] = {}
@@ -619,6 +638,7 @@ def verify_in_threads(
     intrinsics: Intrinsics | None = None,
     workers: int = 1,
     cache_bytes: int = DEFAULT_CACHE_BYTES,
+    stored_features: StoredFeatures | None = None,
 ) -> tuple[list[VerifiedDecision], VerificationStats]:
     """`Verifier.verify` of each decision, on `workers` threads; results in decision order.
 
@@ -637,7 +657,14 @@ def verify_in_threads(
 
     def work() -> None:
         with open_loader() as loader:
-            verifier = Verifier(params, loader, intrinsics, cache_bytes // workers, cancel=stop)
+            verifier = Verifier(
+                params,
+                loader,
+                intrinsics,
+                cache_bytes // workers,
+                cancel=stop,
+                stored_features=stored_features,
+            )
             try:
                 while not stop.is_set():
                     with lock:

@@ -1,0 +1,95 @@
+"""The verification's features of every frame, extracted during the replay and kept on disk.
+
+The replay decodes every frame once; without this, verification decodes the frames it checks
+a second time (re-reading and decompressing their chunks) and extracts their features again,
+often more than once when its bounded cache has let them go: on the 10 Hz hour, 78,000 frame
+loads for 36,000 frames, 43 % of the stage's thread time (docs/performance.md). So the replay's
+prepare threads also run `extract_features` on the decoded frame, and the detector's thread
+appends the result here in frame order; verification then reads each frame's features back
+with one os.pread (the page cache usually answers), identical to what it would have extracted.
+
+On disk a frame takes 8 + N * (8 + D) bytes (N features of D descriptor bytes: ~17 kB for the
+hour's 434 ORB features on average, 40 kB at most with 1000), in an unlinked temporary file
+(TMPDIR) that disappears when the spill is closed or the process ends. In memory: one 8-byte
+offset per frame.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+from array import array
+from pathlib import Path
+
+import numpy as np
+
+from ..closing import Closing
+from ..verification.geometry import FrameFeatures, GrayImage, extract_features
+from ..verification.params import VerificationParameters
+from .frame_spill import FileSpill
+
+# count (uint32), descriptor width (uint32), scale (float64), then the keypoints (float32
+# x, y) and the descriptors (uint8).
+_HEADER = struct.Struct("<IId")
+
+
+class FeatureSpill(Closing):
+    """`extract_features` of each frame, by frame index. Use as a context manager.
+
+    `compute` may run on any thread; `keep` is called in frame order (index 0, 1, ...) from one
+    thread; `get` may run on several threads once the frames it asks for were kept.
+    """
+
+    def __init__(self, params: VerificationParameters, directory: str | Path | None = None) -> None:
+        self.params = params
+        self._spill = FileSpill(directory, what="the frames' features")
+        self._offsets = array("q", [0])  # frame i's record: offsets[i] .. offsets[i + 1]
+        self._lock = threading.Lock()
+
+    @property
+    def frames(self) -> int:
+        return len(self._offsets) - 1
+
+    @property
+    def bytes(self) -> int:
+        return self._spill.bytes
+
+    def compute(self, gray: GrayImage) -> FrameFeatures:
+        return extract_features(gray, self.params)
+
+    def keep(self, index: int, features: FrameFeatures) -> None:
+        """Append frame `index`'s features (the frames must come in order, from 0).
+
+        Raises:
+            ValueError: `index` is not the next frame.
+            OutputError: the disk refuses the bytes.
+        """
+        with self._lock:
+            if index != self.frames:
+                raise ValueError(f"features of frame {index} kept after {self.frames} frames")
+            header = _HEADER.pack(features.count, features.descriptors.shape[1], features.scale)
+            record = header + features.keypoints.tobytes() + features.descriptors.tobytes()
+            start = self._offsets[-1]
+            self._spill.write(start, memoryview(record))
+            self._offsets.append(start + len(record))
+
+    def get(self, index: int) -> FrameFeatures | None:
+        """Frame `index`'s features, or None for a frame that was never kept."""
+        if not 0 <= index < self.frames:
+            return None
+        start, end = self._offsets[index], self._offsets[index + 1]
+        record = bytearray(end - start)
+        self._spill.read_into(start, memoryview(record))
+        count, width, scale = _HEADER.unpack_from(record)
+        keypoints_end = _HEADER.size + 8 * count
+        keypoints = np.frombuffer(record, np.float32, 2 * count, _HEADER.size).reshape(count, 2)
+        descriptors = np.frombuffer(record, np.uint8, count * width, keypoints_end)
+        return FrameFeatures(
+            keypoints=keypoints,
+            descriptors=descriptors.reshape(count, width),
+            detector=self.params.feature_detector,
+            scale=scale,
+        )
+
+    def close(self) -> None:
+        self._spill.close()
