@@ -285,6 +285,7 @@ class _Fitter:
             self.params,
             depth=depth,
             neighbours=neighbours,
+            query_neighbours=lambda: self._neighbours(pair.query),
         )
         if pose is None:
             return NO_ROTATION
@@ -294,6 +295,12 @@ class _Fitter:
             missing.append(self._no_odometry())
         reasons = [r for r in [*missing, *pose.reason.split("; ")] if r]
         return dataclasses.replace(pose, reason="; ".join(sorted(reasons, key=_rung)))
+
+    def _neighbours(self, frame: int) -> list[OdometryNeighbour]:
+        """Frames near `frame` with their odometry relative to it (none without odometry)."""
+        near = [] if self.odometry is None else self.odometry.neighbours(frame)
+        features = self.features(near)
+        return [self._neighbour(frame, n, f) for n, f in zip(near, features, strict=True)]
 
     def _neighbour(self, match: int, neighbour: int, features: FrameFeatures) -> OdometryNeighbour:
         assert self.odometry is not None
