@@ -86,26 +86,24 @@ class MetricPoseParameters:
     min_baseline_m: float = 0.2  # rung 2: odometry distance between match and neighbour
     min_parallax_deg: float = 1.0  # rung 2: angle between the two rays of a triangulated point
     min_pixel_sigma_px: float = 0.3  # floor of the covariance's pixel sigma (original pixels)
-    # Floor of a rotation-only pose's rotation sigma, on every axis: the essential fit's own
-    # sigma understates its error (median 0.47 deg stated for a median error of 3.5 deg on the
-    # drifting drives), and an overconfident edge bends the pose graph. Its errors are heavy
-    # tailed (calibration drives, seeds 5, 7, 13, 17: median 1.9, 95th percentile 7.9 deg) and
-    # the ATE after `optimize` fell on 3 of those 4 drives at each step of the floor from 4 to
-    # 8, 12 and 20 degrees (the fourth within 1 %); 12 keeps the edge a weak rotation prior
-    # (docs/export.md, "Measured: loop-edge errors and ATE per model").
-    rotation_only_min_sigma_deg: float = 12.0
     # Rung 3's rotation is the consensus of several estimates of it (`_rotation_consensus`):
     # the verification's essential fit, the metric features' essential fit and homography, and
     # the essential fits of the query against the match's neighbours and of the query's
     # neighbours against the match, chained through their refined odometry. Those within
     # `rotation_agreement_deg` of the medoid are averaged. How many agree says how good it is
-    # (calibration drives: median error 0.6 deg when 3 or more agree, 0.8 with 2, 2.9 with
-    # none), so the sigma floor is `rotation_agreed_min_sigma_deg` (2 agree, 3 or more) and
-    # `rotation_only_min_sigma_deg` when none does. False: the verdict's rotation, floored
-    # at rotation_only_min_sigma_deg (before issue #20's round 2).
+    # (calibration drives, seeds 5, 7, 13, 17, 3, 23, 31, 37: median error 0.6 deg when 3 or
+    # more agree, 0.8 with 2, 2.9 with none; 1.7 for the verdict's rotation alone), so the
+    # floor of its sigma (every axis) is `rotation_agreed_min_sigma_deg` (2 agree, 3 or more)
+    # or `rotation_only_min_sigma_deg` (none agrees): an essential fit's own sigma states
+    # tenths of a degree for errors of degrees. The floors were chosen by the NEES of the
+    # rotation-only edges there (median 0.99, 95th percentile 9.8; chi-square's 2.37 and 7.8);
+    # the ATE after `optimize` moved within 1 % from floors of 12, 4 and 2 degrees
+    # (docs/export.md, "Metric loop edges, round 2"). False: the verdict's rotation, floored
+    # at rotation_only_min_sigma_deg (12 deg before round 2).
     rotation_consensus: bool = True
     rotation_agreement_deg: float = 2.0
-    rotation_agreed_min_sigma_deg: tuple[float, float] = (4.0, 2.0)
+    rotation_only_min_sigma_deg: float = 3.0
+    rotation_agreed_min_sigma_deg: tuple[float, float] = (1.0, 0.5)
     # Rung 2's covariance times this: calibrated so that the median NEES (squared error in the
     # stated covariance's metric, 6 degrees of freedom) of the odometry_pnp edges on the
     # calibration drives (seeds 5, 7, 13, 17) is chi-square's, 5.35 (it was 7.12: sigmas 15 %
