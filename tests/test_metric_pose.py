@@ -371,8 +371,6 @@ def test_a_wrong_verdict_rotation_is_outvoted() -> None:
     pose = run(scene, depth=False, odometry=False, off_deg=6.0)
     assert pose is not None and pose.method == "rotation_only"
     assert _rotation_error_deg(pose, scene.truth) < 1.0
-    # Two agreed: the floor for two.
-    assert _sigmas_deg(pose).min() == pytest.approx(P.rotation_agreed_min_sigma_deg[0], rel=1e-6)
     alone = run(scene, depth=False, odometry=False, off_deg=6.0, params=NO_CONSENSUS)
     assert alone is not None and _rotation_error_deg(alone, scene.truth) > 5.9
 
@@ -380,7 +378,8 @@ def test_a_wrong_verdict_rotation_is_outvoted() -> None:
 def test_neighbours_chained_through_their_odometry_join_the_consensus() -> None:
     # Too few points for PnP (rung 3 is what is left), a neighbour of the match 1 m ahead and
     # one of the query 1 m behind (X_n = R X_query + t) with their exact odometry: two more
-    # estimates, both near the truth, outvote a verdict 6 deg off and the pair's own fits.
+    # estimates, on wider baselines, beside a verdict 6 deg off and the pair's own fits (the
+    # mean of those two and the pair's essential fit and homography is 0.47 deg off).
     behind = _pose(0.0, (0.0, 0.0, 1.0))  # X_n = X_query + (0, 0, 1)
     # make_scene places neighbours relative to the match: X_n = S R^T (X_match - t) + u.
     seen_from_match = Pose(
@@ -402,8 +401,7 @@ def test_neighbours_chained_through_their_odometry_join_the_consensus() -> None:
         query_neighbours=lambda: [near_query],
     )
     assert pose is not None and pose.method == "rotation_only"
-    assert _rotation_error_deg(pose, scene.truth) < 1.0
-    assert _sigmas_deg(pose).min() == pytest.approx(P.rotation_agreed_min_sigma_deg[1], rel=1e-6)
+    assert _rotation_error_deg(pose, scene.truth) < 0.2  # measured 0.04
 
 
 def test_a_rotation_only_sigma_is_at_least_its_floor() -> None:
@@ -413,15 +411,13 @@ def test_a_rotation_only_sigma_is_at_least_its_floor() -> None:
     pose = run(scene, depth=False, odometry=False, params=NO_CONSENSUS)
     assert pose is not None and pose.method == "rotation_only"
     assert _sigmas_deg(pose).min() == pytest.approx(floor, rel=1e-6)
-    # Three estimates agree (the verdict's, the features' essential fit and homography).
     agreed = run(scene, depth=False, odometry=False)
-    assert agreed is not None
-    assert _sigmas_deg(agreed).min() == pytest.approx(P.rotation_agreed_min_sigma_deg[1], rel=1e-6)
+    assert agreed is not None and _sigmas_deg(agreed).min() == pytest.approx(floor, rel=1e-6)
     unfloored = run(
         scene,
         depth=False,
         odometry=False,
-        params=MetricPoseParameters(rotation_only_min_sigma_deg=1e-3, rotation_consensus=False),
+        params=MetricPoseParameters(rotation_only_min_sigma_deg=1e-3),
     )
     assert unfloored is not None
     assert _sigmas_deg(unfloored).max() < floor
