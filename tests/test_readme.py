@@ -290,7 +290,9 @@ def test_readme_links_into_the_reference_reach_its_headings() -> None:
 
 
 def test_readme_stays_a_front_door() -> None:
-    assert len(README.read_bytes()) <= 8 * 1024
+    # 8.3 KiB: the pose-graph block grew by the odometry's and the truth's TUM exports and the
+    # two evo_ape lines (issue #20's "annotate, optimize and evo with their real output").
+    assert len(README.read_bytes()) <= round(8.3 * 1024)
 
 
 def test_annotate_block(shell: Shell) -> None:
