@@ -70,6 +70,7 @@ OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
 _FIT_SEED = 0
 _JACOBIAN_STEP = 1e-6  # metres and radians: central differences of the reprojection
 _DIRECTION_SEEDS = 40  # rung 3: matches whose pairs propose a translation direction
+_SUPPORT_BLOCK = 128  # rung 3: directions scored at once
 
 
 @dataclass(frozen=True)
@@ -898,8 +899,7 @@ def _direction_for(pair: _PairRays, rotation: F64, fallback: F64) -> F64:
     candidates = candidates[lengths > 1e-9] / lengths[lengths > 1e-9, None]
     if len(candidates) == 0:
         return fallback
-    support = [pair.support(rotation, c) for c in candidates]
-    best: F64 = candidates[int(np.argmax(support))]
+    best: F64 = candidates[int(np.argmax(pair.supports(rotation, candidates)))]
     explained = np.abs(pair.distances_px(rotation, best)) <= pair.threshold_px
     if np.count_nonzero(explained) >= 2:
         best = np.asarray(np.linalg.svd(normals[explained])[2][-1], np.float64)
@@ -929,6 +929,21 @@ class _PairRays:
         """How many matches lie within the threshold of E = [t]x R."""
         distances = self.distances_px(rotation, translation)
         return int(np.count_nonzero(np.abs(distances) <= self.threshold_px))
+
+    def supports(self, rotation: F64, directions: F64) -> npt.NDArray[np.intp]:
+        """`support` of each unit row of `directions` with the same rotation, at once (in
+        blocks: a (block, matches, 3) array each)."""
+        turned = self.rays_query @ rotation.T  # R x_q
+        counts = []
+        for start in range(0, len(directions), _SUPPORT_BLOCK):
+            t = directions[start : start + _SUPPORT_BLOCK, None, :]
+            line = np.cross(t, turned[None])  # E x_q = t x R x_q
+            back = np.cross(t, self.rays_match[None]) @ rotation  # -(E^T x_m), as rows
+            numerator = np.sum(self.rays_match[None] * line, axis=2)
+            denominator = np.sqrt(np.sum(line[..., :2] ** 2 + back[..., :2] ** 2, axis=2))
+            distances = numerator / np.maximum(denominator, 1e-12) * self.focal
+            counts.append(np.count_nonzero(np.abs(distances) <= self.threshold_px, axis=1))
+        return np.concatenate(counts) if counts else np.zeros(0, np.intp)
 
 
 def _pair_rays(
