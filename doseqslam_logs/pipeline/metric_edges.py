@@ -11,7 +11,8 @@ Odometry poses are body poses of the camera (x forward, y left, z up) turned int
 axes with `OPTICAL_TO_BODY`: the camera is assumed to look along the body's x axis at the
 pose's origin (no tf is read). Neighbours of a match are chosen as `tools/metric_edges.py`
 measured them: on each side, the nearest frame whose odometry is at least 1 m, and 2 m, away,
-within NEIGHBOUR_REACH_S of the match.
+within NEIGHBOUR_REACH_S of the match. A pair left with the rotation only also gets the query's
+neighbours, chosen the same way, for that rotation's consensus (read only for those pairs).
 
 Features of the fit: SIFT on frames shrunk to the verification's working size
 (`image_max_side`): the run's ORB missed the accuracy target (median 0.22 m against 0.10 m

@@ -782,8 +782,7 @@ def rotation_only(
         fitted = _rotation_covariance(
             rays_q[inlier], rays_m[inlier], rotation, direction, focal, params.min_pixel_sigma_px
         )
-        floor = math.radians(params.rotation_only_min_sigma_deg)
-        covariance[3:, 3:] = _floored(fitted, floor)
+        covariance[3:, 3:] = _floored(fitted, math.radians(params.rotation_only_min_sigma_deg))
     else:
         covariance[3:, 3:] = np.diag([math.inf] * 3)
     return MetricPose("rotation_only", _quaternion(rotation), None, covariance, count, rms)
