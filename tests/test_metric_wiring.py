@@ -162,6 +162,14 @@ def test_without_odometry_rotation_only_and_without_intrinsics_none(
         covariance = lc.metric_covariance_matrix()
         assert np.isinf(np.diagonal(covariance)[:3]).all()
         assert np.isfinite(covariance[3:, 3:]).all()
+    # The consensus of the verdict's, the features' essential fit and homography cuts the tail
+    # (measured 95th percentile 3.7 deg, worst 4.6; the verdict's rotation alone 5.7 and 8.4).
+    rotation_errors = []
+    for lc in reported:
+        true_rotation, _ = true_relative(without_odometry, lc)
+        error = Rotation.from_quat(lc.metric_rotation_xyzw) * true_rotation.inv()
+        rotation_errors.append(np.degrees(error.magnitude()))
+    assert np.percentile(rotation_errors, 95) <= 4.5 and max(rotation_errors) <= 5.5
     # The export says so: a rotation-only factor, no translation column.
     graph = build_pose_graph(without_odometry, ExportOptions(odometry_topic="/odom"))
     assert graph.loop_models == {"rotation_only": len(reported)}

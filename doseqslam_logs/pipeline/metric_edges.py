@@ -11,7 +11,8 @@ Odometry poses are body poses of the camera (x forward, y left, z up) turned int
 axes with `OPTICAL_TO_BODY`: the camera is assumed to look along the body's x axis at the
 pose's origin (no tf is read). Neighbours of a match are chosen as `tools/metric_edges.py`
 measured them: on each side, the nearest frame whose odometry is at least 1 m, and 2 m, away,
-within NEIGHBOUR_REACH_S of the match.
+within NEIGHBOUR_REACH_S of the match. A pair left with the rotation only also gets the query's
+neighbours, chosen the same way, for that rotation's consensus (read only for those pairs).
 
 Features of the fit: SIFT on frames shrunk to the verification's working size
 (`image_max_side`): the run's ORB missed the accuracy target (median 0.22 m against 0.10 m
@@ -285,6 +286,7 @@ class _Fitter:
             self.params,
             depth=depth,
             neighbours=neighbours,
+            query_neighbours=lambda: self._neighbours(pair.query),
         )
         if pose is None:
             return NO_ROTATION
@@ -294,6 +296,12 @@ class _Fitter:
             missing.append(self._no_odometry())
         reasons = [r for r in [*missing, *pose.reason.split("; ")] if r]
         return dataclasses.replace(pose, reason="; ".join(sorted(reasons, key=_rung)))
+
+    def _neighbours(self, frame: int) -> list[OdometryNeighbour]:
+        """Frames near `frame` with their odometry relative to it (none without odometry)."""
+        near = [] if self.odometry is None else self.odometry.neighbours(frame)
+        features = self.features(near)
+        return [self._neighbour(frame, n, f) for n, f in zip(near, features, strict=True)]
 
     def _neighbour(self, match: int, neighbour: int, features: FrameFeatures) -> OdometryNeighbour:
         assert self.odometry is not None
