@@ -38,6 +38,9 @@ _MASKS = [
     (re.compile(r"\b\d+(?:\.\d+)? ms each\b"), "<t> ms each"),
     # optimize: GTSAM's error sums, which floating-point kernels may change in the last digits.
     (re.compile(r"\berror \S+ -> \S+;"), "error <e> -> <e>;"),
+    # Full-precision floats (the csv row: SAD values, fitted rotations, metric poses): another
+    # processor's kernels (AVX2 against AVX-512) may round them differently.
+    (re.compile(r"-?\d+\.\d{6,}(?:e[-+]?\d+)?"), "<f>"),
 ]
 
 
