@@ -3,7 +3,7 @@
 The replay decodes every frame once; without this, verification decodes the frames it checks
 a second time (re-reading and decompressing their chunks) and extracts their features again,
 often more than once when its bounded cache has let them go: on the 10 Hz hour, 78,000 frame
-loads for 36,000 frames, 43 % of the stage's thread time (docs/performance.md). So the replay's
+loads for 36,000 frames (the hour 4.5 % faster without them: docs/performance.md). So the replay's
 prepare threads also run `extract_features` on the decoded frame, and the detector's thread
 appends the result here in frame order; verification then reads each frame's features back
 with one os.pread (the page cache usually answers), identical to what it would have extracted.
