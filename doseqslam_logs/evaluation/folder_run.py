@@ -6,7 +6,6 @@ verification is None), and both the raw and the verified decisions scored at the
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Callable
 from contextlib import nullcontext
@@ -25,7 +24,7 @@ from ..pipeline.feature_health import (
     check_feasibility,
     run_feature_health,
 )
-from ..pipeline.feature_spill import FeatureSpill
+from ..pipeline.feature_spill import FeatureSpill, feature_spill_for
 from ..pipeline.replay import ReplayResult, replay
 from ..pipeline.reread import FolderFrameReader
 from ..sources.image_folder import folder_frames, folder_time_ns, list_images
@@ -190,10 +189,8 @@ def evaluate_folder(
         expected(len(files))
     if stage is not None:
         stage("replay")
-    with contextlib.ExitStack() as stack:
-        features = None  # verification's, extracted as the replay decodes the images
-        if verification is not None:
-            features = stack.enter_context(FeatureSpill(verification))
+    # verification's features, extracted as the replay decodes the images
+    with feature_spill_for(verification) as features:
         frames = folder_frames(images, fps, max_pixels)
         result = replay(frames, make_detector(params), progress, side=features)
         if stage is not None and verification is not None:

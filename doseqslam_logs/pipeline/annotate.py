@@ -66,7 +66,7 @@ from .decode import (
     decoded_frames,
 )
 from .feature_health import FeatureHealth, check_feasibility, run_feature_health
-from .feature_spill import FeatureSpill
+from .feature_spill import FeatureSpill, feature_spill_for
 from .frame_spill import spilled_frame_store
 from .metric_edges import MetricEdges, metric_edges
 from .replay import ReplayResult, replay
@@ -539,10 +539,8 @@ def _annotate(
     digest = _hash_in_background(log)
     counts = FrameCounts()
     recorder = _TimesRecorder()
-    with contextlib.ExitStack() as stack:
-        features = None
-        if options.verification is not None:  # extracted as the replay decodes the frames
-            features = stack.enter_context(FeatureSpill(options.verification))
+    # verification's features, extracted as the replay decodes the frames
+    with feature_spill_for(options.verification) as features:
         topic, result, promise, unattributed = _replay_log(
             read_path, log, params, options, callbacks, recovery, counts, recorder, features
         )

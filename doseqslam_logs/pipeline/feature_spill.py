@@ -17,8 +17,9 @@ offset per frame.
 from __future__ import annotations
 
 import struct
-import threading
 from array import array
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -37,22 +38,18 @@ class FeatureSpill(Closing):
     """`extract_features` of each frame, by frame index. Use as a context manager.
 
     `compute` may run on any thread; `keep` is called in frame order (index 0, 1, ...) from one
-    thread; `get` may run on several threads once the frames it asks for were kept.
+    thread (the replay's detector thread); `get` may run on several threads once the replay is
+    over.
     """
 
     def __init__(self, params: VerificationParameters, directory: str | Path | None = None) -> None:
         self.params = params
         self._spill = FileSpill(directory, what="the frames' features")
         self._offsets = array("q", [0])  # frame i's record: offsets[i] .. offsets[i + 1]
-        self._lock = threading.Lock()
 
     @property
     def frames(self) -> int:
         return len(self._offsets) - 1
-
-    @property
-    def bytes(self) -> int:
-        return self._spill.bytes
 
     def compute(self, gray: GrayImage) -> FrameFeatures:
         return extract_features(gray, self.params)
@@ -64,14 +61,13 @@ class FeatureSpill(Closing):
             ValueError: `index` is not the next frame.
             OutputError: the disk refuses the bytes.
         """
-        with self._lock:
-            if index != self.frames:
-                raise ValueError(f"features of frame {index} kept after {self.frames} frames")
-            header = _HEADER.pack(features.count, features.descriptors.shape[1], features.scale)
-            record = header + features.keypoints.tobytes() + features.descriptors.tobytes()
-            start = self._offsets[-1]
-            self._spill.write(start, memoryview(record))
-            self._offsets.append(start + len(record))
+        if index != self.frames:
+            raise ValueError(f"features of frame {index} kept after {self.frames} frames")
+        header = _HEADER.pack(features.count, features.descriptors.shape[1], features.scale)
+        record = header + features.keypoints.tobytes() + features.descriptors.tobytes()
+        start = self._offsets[-1]
+        self._spill.write(start, memoryview(record))
+        self._offsets.append(start + len(record))
 
     def get(self, index: int) -> FrameFeatures | None:
         """Frame `index`'s features, or None for a frame that was never kept."""
@@ -93,3 +89,14 @@ class FeatureSpill(Closing):
 
     def close(self) -> None:
         self._spill.close()
+
+
+@contextmanager
+def feature_spill_for(params: VerificationParameters | None) -> Iterator[FeatureSpill | None]:
+    """A FeatureSpill for verification with these parameters, closed (and so gone) when the
+    block ends; None when verification is off."""
+    if params is None:
+        yield None
+        return
+    with FeatureSpill(params) as spill:
+        yield spill
