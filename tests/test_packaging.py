@@ -31,3 +31,21 @@ def test_message_definitions_are_readable_from_the_package() -> None:
         assert "float64 f" in read_schema(f"ros2/{name}.msg")
         assert "float64 f" in read_schema(f"ros1/{name}.msg")
         assert '"f"' in read_schema(f"json/{name}.json")
+
+
+def test_every_schema_file_is_installed_by_package_data() -> None:
+    """Each schemas/ folder is a listed package whose globs take all of its files.
+
+    Folders without an `__init__.py` that are not listed make setuptools warn on every
+    install and are only shipped by accident of its legacy behaviour.
+    """
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    packages, data = set(config["packages"]), config["package-data"]
+    for path in (REPO / "schemas").rglob("*"):
+        if not path.is_file() or path.suffix in (".py", ".pyc"):
+            continue
+        folder = path.parent.relative_to(REPO / "schemas").parts
+        package = ".".join(("doseqslam_logs", "schemas", *folder))
+        assert package in packages, f"add {package} to pyproject.toml's packages"
+        globs = data.get(package, [])
+        assert any(path.match(glob) for glob in globs), f"{path.name} not in {package}'s data"
