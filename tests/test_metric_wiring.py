@@ -298,3 +298,18 @@ def test_a_depth_image_of_another_size_than_the_camera_is_not_used(loops: Annota
         pose = fitter.fit(pair, np.ones((96, 128), np.float32), "")
     assert not isinstance(pose, str) and pose.method == "rotation_only"
     assert pose.reason.startswith("depth_pnp: depth image 128x96, the camera's 256x192")
+
+
+def test_metric_poses_are_the_same_on_one_thread_as_on_two(
+    loops: AnnotatedLog, tmp_path: Path
+) -> None:
+    """The stage fits pairs on the run's worker threads: results come back in pair order and
+    each fit seeds its own thread's generator, so one thread gives the same poses."""
+    one = annotate(LOOPS, tmp_path / "one.mcap", "--workers", "1")
+    fields = ("method", "translation", "rotation_xyzw", "covariance", "inliers", "reason")
+
+    def poses(log: AnnotatedLog) -> list[str]:  # repr: NaN (no pose) equals NaN
+        return [repr([getattr(lc, f"metric_{f}") for f in fields]) for lc in log.loop_closures]
+
+    assert sum(lc.metric_method == "odometry_pnp" for lc in loops.loop_closures) >= 5
+    assert poses(one) == poses(loops)

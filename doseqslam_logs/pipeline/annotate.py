@@ -563,6 +563,7 @@ def _annotate(
             time_source=options.time_source,
             odometry_topic=options.odometry_topic,
             max_pixels=options.max_pixels,
+            workers=options.workers,
         )
     sha256 = waiting.result(digest)
     metadata = run_metadata(

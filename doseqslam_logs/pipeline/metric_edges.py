@@ -27,17 +27,22 @@ accepted pair is fitted.
 
 Memory is bounded whatever the log's length: the depth topic is read once, each image used
 and dropped as it arrives (`stream_depth`); frames are re-read through `LogFrameReader` and
-their features kept in a `FeatureCache` bounded in bytes. It runs on the calling (main)
-thread, so Ctrl-C and SIGTERM stop it between two pairs.
+their features kept in a `FeatureCache` bounded in bytes. Pairs are fitted on `workers`
+threads (SIFT and the fits release the GIL), at most a few ahead of the one the calling thread
+waits for, and their poses come back in pair order: the same on any number of threads, each
+fit seeding its own thread's generator. Ctrl-C and SIGTERM stop it within the fits running.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Final
@@ -46,6 +51,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
+from .. import waiting
 from ..annotations.records import FrameTimes
 from ..errors import SourceError
 from ..sources import open_source
@@ -232,28 +238,33 @@ def thinned(pairs: Sequence[AcceptedPair], interval_s: float) -> tuple[list[Acce
 
 
 class _Features:
-    """Metric-fit features of frames by index, re-read from the log and cached in bytes."""
+    """Metric-fit features of frames by index, re-read from the log and cached in bytes.
+
+    Called from several threads: the reader and the cache are used under a lock, the
+    extraction (most of the cost) outside it. Two threads wanting the same new frame may both
+    extract it: the same features, a little work twice.
+    """
 
     def __init__(self, reader: LogFrameReader, params: VerificationParameters) -> None:
         self.reader, self.params = reader, params
         self.cache = FeatureCache(FEATURE_CACHE_BYTES)
         self.loaded = 0
         self.shape: tuple[int, ...] | None = None  # (height, width) of the frames decoded
+        self.lock = threading.Lock()
 
     def __call__(self, indices: Sequence[int]) -> list[FrameFeatures]:
-        missing = sorted({i for i in indices if self.cache.get(i) is None})
-        found = {}
-        for index, gray in self.reader(missing):
-            self.shape = gray.shape
-            found[index] = extract_features(gray, self.params)
-            self.cache.put(index, found[index])
-        self.loaded += len(found)
-        return [found[i] if i in found else self._cached(i) for i in indices]
-
-    def _cached(self, index: int) -> FrameFeatures:
-        features = self.cache.get(index)
-        assert features is not None  # wanted together: the cache holds at least the last one
-        return features
+        with self.lock:  # what is cached now is held here: another thread's puts may evict it
+            found = {i: f for i in set(indices) if (f := self.cache.get(i)) is not None}
+            decoded = list(self.reader(sorted(set(indices) - found.keys())))
+            if decoded:
+                self.shape = decoded[-1][1].shape
+        extracted = {index: extract_features(gray, self.params) for index, gray in decoded}
+        with self.lock:
+            for index, features in extracted.items():
+                self.cache.put(index, features)
+            self.loaded += len(extracted)
+        found.update(extracted)
+        return [found[i] for i in indices]
 
 
 @dataclass
@@ -333,9 +344,10 @@ def metric_edges(
     max_pixels: int = DEFAULT_MAX_PIXELS,
     interval_s: float = METRIC_INTERVAL_S,
     progress: Callable[[int], None] | None = None,
+    workers: int = 2,
 ) -> MetricEdges:
-    """The metric pose of every accepted pair (module docstring). `odometry_topic`: None the
-    first Odometry topic, "" none.
+    """The metric pose of every accepted pair (module docstring), fitted on `workers` threads.
+    `odometry_topic`: None the first Odometry topic, "" none.
 
     Raises SourceError when the log cannot be read again.
     """
@@ -353,7 +365,8 @@ def metric_edges(
     params = dataclasses.replace(verification, feature_detector=METRIC_FEATURES)
     with LogFrameReader(read_path, image_topic, frame_times, max_pixels=max_pixels) as reader:
         fitter = _Fitter(_Features(reader, params), intrinsics, odometry)
-        for done, (key, pose) in enumerate(_fit_all(read_path, image_topic, chosen, fitter, stats)):
+        fits = _fit_all(read_path, image_topic, chosen, fitter, stats)
+        for done, (key, pose) in enumerate(_in_threads(fits, workers)):
             poses[key] = pose
             if progress is not None:
                 progress(done + 1)
@@ -387,20 +400,50 @@ def _odometry(
     return odometry_frames(track, frame_times.detector_times_ns(time_source))
 
 
+_Fit = Callable[[], "MetricPose | str"]
+
+
+def _in_threads(
+    fits: Iterator[tuple[PairKey, _Fit]], workers: int
+) -> Iterator[tuple[PairKey, MetricPose | str]]:
+    """Each fit's result, in the order of `fits`, run on `workers` threads at most 2 *
+    `workers` ahead of the one yielded (bounded memory: a fit holds its frames' features)."""
+    if workers <= 1:
+        yield from ((key, fit()) for key, fit in fits)
+        return
+    with ThreadPoolExecutor(workers, thread_name_prefix="metric") as pool:
+        pending: deque[tuple[PairKey, Future[MetricPose | str]]] = deque()
+        try:
+            for key, fit in fits:
+                pending.append((key, pool.submit(fit)))
+                if len(pending) > 2 * workers:
+                    done_key, future = pending.popleft()
+                    yield done_key, waiting.result(future)  # hears Ctrl-C while it waits
+            while pending:
+                done_key, future = pending.popleft()
+                yield done_key, waiting.result(future)
+        finally:  # interrupted or failed: the fits not started are dropped, not run
+            for _, future in pending:
+                future.cancel()
+
+
 def _fit_all(
     read_path: Path,
     image_topic: str,
     pairs: Sequence[AcceptedPair],
     fitter: _Fitter,
     stats: MetricStats,
-) -> Iterator[tuple[PairKey, MetricPose | str]]:
-    """Each pair's pose: with depth, as the match's depth image arrives (one pass over the
-    depth topic), then the pairs whose match had none; else in pair order."""
+) -> Iterator[tuple[PairKey, _Fit]]:
+    """Each pair's fit, to run: with depth, as the match's depth image arrives (one pass over
+    the depth topic), then the pairs whose match had none; else in pair order."""
     with open_source(read_path) as source:
         depth_topic = find_depth_topic(source, image_topic)
         if depth_topic is None:
             for pair in pairs:
-                yield pair.key, fitter.fit(pair, None, "depth_pnp: no depth topic")
+                yield (
+                    pair.key,
+                    functools.partial(fitter.fit, pair, None, "depth_pnp: no depth topic"),
+                )
             return
         stats.depth_topic = depth_topic
         by_stamp: dict[int, list[AcceptedPair]] = {}
@@ -411,13 +454,13 @@ def _fit_all(
         try:
             for stamp, image in stream_depth(source, depth_topic, by_stamp, found):
                 for pair in by_stamp.pop(stamp):
-                    yield pair.key, fitter.fit(pair, image.metres, "")
+                    yield pair.key, functools.partial(fitter.fit, pair, image.metres, "")
         finally:
             stats.depth_messages, stats.depth_skipped = found.messages, found.skipped
     no_depth = "depth_pnp: no depth image at the match"
     for left in by_stamp.values():
         for pair in left:
-            yield pair.key, fitter.fit(pair, None, no_depth)
+            yield pair.key, functools.partial(fitter.fit, pair, None, no_depth)
 
 
 def _rung(reason: str) -> int:
