@@ -274,14 +274,16 @@ def bracketed_match(
     rejected (NOT_BRACKETED) when the query's position does not lie between two of them.
 
     `verdicts` are the checked frames of one window; the run is the frames next to `refined`
-    (in frame order) that passed with a relative pose. Along a trajectory driven the same way
-    as the query, the match camera is behind the query (z < 0, `match_camera_direction`) before
-    the nearest point and ahead after it: a sign change between neighbours of the run brackets
-    the query, and the one of the two with the smaller |z| is the nearer (among several sign
-    changes, the pair with the most inliers). Without one, every verified frame is on one side:
-    the views overlap, but the camera was not where the query was (e.g. the same facades seen
-    from several metres further on). Accepted verdicts without a pose (fundamental matrix)
-    are returned unchanged. Assumes a forward-looking camera.
+    (in frame order) that passed with a relative pose. Along a trajectory driven the same
+    way as the query, the match camera is behind the query (z < 0, `match_camera_direction`)
+    before the nearest point and ahead after it: a sign change between neighbours of the run
+    brackets the query, and the one of the two with the smaller |z| is the nearer (among
+    several sign changes, the pair with the most inliers). A lone frame whose sign differs
+    from both its neighbours' is taken as noise, not as two changes (`_without_lone_flips`).
+    Without a change, every verified frame is on one side: the views overlap, but the camera
+    was not where the query was (e.g. the same facades seen from several metres further on).
+    Accepted verdicts without a pose (fundamental matrix) are returned unchanged. Assumes a
+    forward-looking camera.
 
     Raises:
         ValueError: `refined` is not one of the frames of `verdicts`.
@@ -300,11 +302,29 @@ def bracketed_match(
         last += 1
     run = ordered[first : last + 1]
     ahead = [_ahead(v) for _, v in run]
-    changes = [i for i in range(len(run) - 1) if ahead[i] < 0 <= ahead[i + 1]]
+    side = _without_lone_flips([1 if a >= 0 else -1 for a in ahead])
+    changes = [i for i in range(len(run) - 1) if side[i] < 0 < side[i + 1]]
     if not changes:
         return refined, dataclasses.replace(verdict, accepted=False, reason=NOT_BRACKETED)
     i = max(changes, key=lambda k: run[k][1].inliers + run[k + 1][1].inliers)
     return run[i] if abs(ahead[i]) < abs(ahead[i + 1]) else run[i + 1]
+
+
+def _without_lone_flips(sides: list[int]) -> list[int]:
+    """The sides with each lone flip (a frame whose two neighbours in the run both say the
+    other side) turned to its neighbours' side: a median of three.
+
+    The direction of t is least certain where the cameras are closest and the scene is far
+    (forward motion): one frame's sign can flip. On the 10 Hz hour both false pairs were such
+    a flip, "- + - -" and "+ + - +", taken as the crossing 2.2 and 2.5 m from the true one
+    (docs/results.md, "Lone sign flips"). A frame at either end of the run has one neighbour
+    and keeps its side: a short run can still bracket.
+    """
+    smoothed = list(sides)
+    for i in range(1, len(sides) - 1):
+        if sides[i - 1] == sides[i + 1] != sides[i]:
+            smoothed[i] = sides[i - 1]
+    return smoothed
 
 
 def side_of_query(verdict: Verdict) -> int:
