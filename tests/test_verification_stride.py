@@ -148,6 +148,42 @@ def test_two_hopeless_checks_give_the_sequence_up() -> None:
     assert all(check.verdict.reason == "too few features" for check in at_2_hz[0].checks)
 
 
+def test_a_tracked_check_near_enough_is_not_searched_again(monkeypatch) -> None:
+    """Every pair has 20 inliers: rejected (under 30), but not hopeless (15 or more). At 10 Hz
+    (s = 5) the first checked candidate searches its window coarse to fine; each later one
+    checks only where the previous offset puts it (the frame and the grid beside it) and keeps
+    that verdict: a search of its window would cost 15 frame pairs for the same near miss."""
+    checked: list[tuple[int, int]] = []
+
+    def features(gray, params):  # the frame index, as a keypoint
+        return FrameFeatures(np.array([[gray[0, 0], 0]], np.float32), gray[:1, :32], "orb", 1.0)
+
+    def near_miss(query, match, params, intrinsics=None):
+        checked.append((int(query.keypoints[0, 0]), int(match.keypoints[0, 0])))
+        return stage.Verdict(False, 20, 40, "F", "too few inliers")
+
+    monkeypatch.setattr(stage, "extract_features", features)
+    monkeypatch.setattr(stage, "verify_pair", near_miss)
+
+    def numbered(indices):
+        return ((i, np.full((48, 64), i % 256, np.uint8)) for i in indices)
+
+    decision = sequence_decision(30, 100_000_000, 30, first=200, match=100)
+    [verified], stats = verify_in_threads(
+        [decision], lambda: nullcontext(numbered), DEFAULT_VERIFICATION
+    )
+    checked_queries = [c for c in verified.checks if c.verdict.reason == "too few inliers"]
+    assert len(checked_queries) == 6 and stats.given_up == 0 and stats.accepted == 0
+    per_query = Counter(q for q, _ in checked)
+    first_search = per_query.pop(200)
+    # The first: the 2s grid over its window 75..125, the match among them (5), the s grid
+    # within 2s - 1 of the best (2: 95, 105), the frames within s - 1 of it (8). The others:
+    # the frame at the previous offset (0), itself on the s grid: one frame each.
+    assert first_search == 15
+    assert per_query == {205: 1, 210: 1, 215: 1, 220: 1, 225: 1}
+    assert stats.pairs == first_search + 5
+
+
 def test_alternatives_are_tried_in_order_and_given_up_after_two_hopeless_checks() -> None:
     """Blank frames: every check is hopeless. At 2 Hz (s = 1) each of the 4 candidates checks
     its own window; alternative 1 (matches 60, 61, ...) is checked for the first two only, then
