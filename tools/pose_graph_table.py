@@ -18,8 +18,15 @@ after the `optimize` command's optimization of the odometry alone, the placehold
 metric model, and an oracle graph whose loop edges are the true relative poses (with the
 metric model's information).
 
+`--odometry-weights` prints how the ATE of the metric and the oracle graphs depends on the
+odometry edges' information: each odometry edge's covariance (the /odom messages' pose
+covariance per frame spanned) multiplied by each factor, on the calibration drives (seeds 5, 7,
+13, 17), the table's drifting drives and the committed samples (docs/export.md, "How much the
+odometry edges weigh").
+
     python tools/pose_graph_table.py [--wrong 5]
     python tools/pose_graph_table.py --metric
+    python tools/pose_graph_table.py --odometry-weights
 """
 
 from __future__ import annotations
@@ -147,13 +154,71 @@ def metric_table() -> None:
             print(metric_row(name, annotated), flush=True)
 
 
+# Factors on the odometry edges' covariance (translation, rotation) of --odometry-weights.
+ODOMETRY_FACTORS = ((1.0, 1.0), (0.1, 0.1), (0.01, 0.01), (0.01, 0.001), (0.001, 0.001))
+
+
+def scaled_odometry(graph: PoseGraph, translation: float, rotation: float) -> PoseGraph:
+    """The graph with each odometry edge's covariance multiplied by `translation` on x, y, z
+    and `rotation` on the three rotation axes."""
+    root = np.sqrt(np.array([translation] * 3 + [rotation] * 3))
+    edges = [
+        dataclasses.replace(edge, information=edge.information / np.outer(root, root))
+        for edge in graph.odometry_edges
+    ]
+    return dataclasses.replace(graph, odometry_edges=edges)
+
+
+def odometry_weight_row(name: str, annotated: Path) -> str:
+    """ATE of the metric and the oracle graph (and their ratio) at each ODOMETRY_FACTORS."""
+    log = read_annotations(annotated)
+    metric = build_pose_graph(log, ExportOptions(odometry_topic="/odom", loop_model="metric"))
+    truth = read_poses(annotated, "/ground_truth/pose").interpolate(
+        frame_times_ns(log)[metric.vertex_ids]
+    )
+    oracle = dataclasses.replace(metric, loop_edges=oracle_edges(metric, truth))
+    cells = [f"{check.umeyama_rmse(metric.poses.positions, truth.positions):.3f}"]
+    for translation, rotation in ODOMETRY_FACTORS:
+        ate = [
+            check.umeyama_rmse(
+                optimize_pose_graph(scaled_odometry(g, translation, rotation)).positions,
+                truth.positions,
+            )
+            for g in (metric, oracle)
+        ]
+        cells.append(f"{ate[0]:.3f} / {ate[1]:.3f} ({ate[0] / ate[1]:.2f})")
+    return f"| {name} | " + " | ".join(cells) + " |"
+
+
+def odometry_weight_table() -> None:
+    factors = " | ".join(f"x {t:g} / {r:g}" for t, r in ODOMETRY_FACTORS)
+    print(f"| drive | ATE odometry | {factors} |")
+    print("|---|---:|" + "---:|" * len(ODOMETRY_FACTORS))
+    with tempfile.TemporaryDirectory() as scratch:
+        root = Path(scratch)
+        seeds = [(f"seed {s} (calibration)", s) for s in (5, 7, 13, 17)]
+        seeds += [(f"seed {s}", s) for s in (29, 2, 20)]
+        drives = [(name, check.generate_drifting_drive(root, s)) for name, s in seeds]
+        for k, (name, log) in enumerate(drives + COMMITTED):
+            annotated = root / f"annotated{k}.mcap"
+            if cli_main(["annotate", str(log), "-o", str(annotated)]) != 0:
+                raise RuntimeError(f"annotate {log} failed")
+            print(odometry_weight_row(name, annotated), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--wrong", type=int, default=5, help="wrong loop edges to inject")
     parser.add_argument("--metric", action="store_true", help="issue #20's table instead")
+    parser.add_argument(
+        "--odometry-weights", action="store_true", help="ATE against the odometry's weight"
+    )
     args = parser.parse_args()
     if args.metric:
         metric_table()
+        return
+    if args.odometry_weights:
+        odometry_weight_table()
         return
     graphs = []
     with tempfile.TemporaryDirectory() as scratch:
