@@ -329,7 +329,7 @@ def test_poses_are_kept_as_arrays_and_a_short_covariance_is_one_clear_error() ->
     message's, so it stops the read with one line."""
     from doseqslam_logs.sources import poses
 
-    columns = poses._Columns()
+    columns = poses._Columns(with_covariance=False)
     columns.add(
         Path("x.mcap"), "/odom", poses._Pose(2, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 2.0], None)
     )
@@ -341,7 +341,7 @@ def test_poses_are_kept_as_arrays_and_a_short_covariance_is_one_clear_error() ->
     assert track.positions.tolist() == [[4.0, 5.0, 6.0], [1.0, 2.0, 3.0]]
     assert track.quaternions_xyzw.tolist() == [[0.0, 0.0, 0.0, 1.0]] * 2
     assert track.covariances is None
-    with_covariance = poses._Columns()
+    with_covariance = poses._Columns(with_covariance=True)
     with_covariance.add(
         Path("x.mcap"), "/odom", poses._Pose(1, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 36)
     )

@@ -134,7 +134,7 @@ def read_poses(path: str | Path, topic: str) -> PoseTrack:
     with open_source(path) as source:
         types = [c.message_type for c in source.channels() if c.topic == topic]
         kind = _check_type(path, topic, [n for t in types for n in t.split(", ")])
-        columns = _Columns()
+        columns = _Columns(with_covariance=kind in _WITH_COVARIANCE)
         for m in source.messages(topic):
             columns.add(path, topic, _pose(kind, m.message, m.log_time_ns))
     if not columns.times:
@@ -203,29 +203,28 @@ class _Columns:
     Python object each, with lists of floats, the 144,000 Odometry messages of a 4-hour log
     took a process from 48 to 428 MB (docs/performance.md)."""
 
-    def __init__(self) -> None:
+    def __init__(self, with_covariance: bool) -> None:
         self.times = array("q")
         self.poses = array("d")  # x, y, z, qx, qy, qz, qw per message
         self.covariances = array("d")  # 36 per message, when the type has a covariance
-        self.with_covariance: bool | None = None
+        self.with_covariance = with_covariance
 
     def add(self, path: Path, topic: str, pose: _Pose) -> None:
-        if self.with_covariance is None:
-            self.with_covariance = pose.covariance is not None
         if pose.covariance is not None and len(pose.covariance) != 36:
             raise SourceError(
                 f"{path}: topic {topic!r} has a covariance of {len(pose.covariance)} values, not 36"
             )
         self.times.append(pose.time_ns)
         self.poses.extend(pose.position + pose.quaternion)
-        if self.with_covariance and pose.covariance is not None:
+        if pose.covariance is not None:  # every message of the topic's type has one
             self.covariances.extend(pose.covariance)
 
 
 def _track(path: Path, topic: str, columns: _Columns) -> PoseTrack:
     # Stable: the first of equal times comes first.
-    order = np.argsort(np.frombuffer(columns.times, dtype=np.int64), kind="stable")
-    times = np.frombuffer(columns.times, dtype=np.int64)[order]
+    unsorted = np.frombuffer(columns.times, dtype=np.int64)
+    order = np.argsort(unsorted, kind="stable")
+    times = unsorted[order]
     keep = np.concatenate([[True], np.diff(times) > 0])
     values = np.frombuffer(columns.poses, dtype=np.float64).reshape(-1, 7)[order][keep]
     positions, quaternions = values[:, :3].copy(), values[:, 3:].copy()
