@@ -34,14 +34,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 import pose_graph_check as check
 from scipy.spatial.transform import Rotation
 
-from doseqslam_logs.annotations.reader import read_annotations
+from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.cli.main import main as cli_main
 from doseqslam_logs.export.base import ExportOptions
 from doseqslam_logs.export.gtsam_graph import OptimizeOptions, optimize_pose_graph
@@ -105,16 +105,29 @@ def _stats(values: Sequence[float], digits: int) -> str:
     return f"{np.median(values):.{digits}f} / {np.percentile(values, 95):.{digits}f}"
 
 
+def metric_graph_and_truth(annotated: Path) -> tuple[AnnotatedLog, PoseGraph, PoseTrack]:
+    """The annotated drive, its pose graph with the metric model (/odom) and
+    /ground_truth/pose at the graph's vertices."""
+    log = read_annotations(annotated)
+    graph = build_pose_graph(log, ExportOptions(odometry_topic="/odom", loop_model="metric"))
+    truth = read_poses(annotated, "/ground_truth/pose")
+    return log, graph, truth.interpolate(frame_times_ns(log)[graph.vertex_ids])
+
+
+def annotated_drives(root: Path, drives: Sequence[tuple[str, Path]]) -> Iterator[tuple[str, Path]]:
+    """Each (name, log) annotated with the command's defaults into `root`, as it is done."""
+    for k, (name, log) in enumerate(drives):
+        annotated = root / f"annotated{k}.mcap"
+        if cli_main(["annotate", str(log), "-o", str(annotated)]) != 0:
+            raise RuntimeError(f"annotate {log} failed")
+        yield name, annotated
+
+
 def metric_row(name: str, annotated: Path) -> str:
     """One drive's row of the --metric table."""
-    log = read_annotations(annotated)
-    truth_track = read_poses(annotated, "/ground_truth/pose")
-    graphs = {
-        model: build_pose_graph(log, ExportOptions(odometry_topic="/odom", loop_model=model))
-        for model in ("placeholder", "metric")
-    }
-    metric = graphs["metric"]
-    truth = truth_track.interpolate(frame_times_ns(log)[metric.vertex_ids])
+    log, metric, truth = metric_graph_and_truth(annotated)
+    placeholder = ExportOptions(odometry_topic="/odom", loop_model="placeholder")
+    graphs = {"placeholder": build_pose_graph(log, placeholder), "metric": metric}
     oracle = oracle_edges(metric, truth)
     cells = []
     for graph in graphs.values():
@@ -147,10 +160,7 @@ def metric_table() -> None:
         root = Path(scratch)
         drifting = [(f"seed {s}", check.generate_drifting_drive(root, s)) for s in (29, 2, 20)]
         depth = [("seed 29 with depth", check.generate_drifting_drive(root, 29, depth=True))]
-        for k, (name, log) in enumerate(drifting + depth + COMMITTED):
-            annotated = root / f"annotated{k}.mcap"
-            if cli_main(["annotate", str(log), "-o", str(annotated)]) != 0:
-                raise RuntimeError(f"annotate {log} failed")
+        for name, annotated in annotated_drives(root, drifting + depth + COMMITTED):
             print(metric_row(name, annotated), flush=True)
 
 
@@ -171,11 +181,7 @@ def scaled_odometry(graph: PoseGraph, translation: float, rotation: float) -> Po
 
 def odometry_weight_row(name: str, annotated: Path) -> str:
     """ATE of the metric and the oracle graph (and their ratio) at each ODOMETRY_FACTORS."""
-    log = read_annotations(annotated)
-    metric = build_pose_graph(log, ExportOptions(odometry_topic="/odom", loop_model="metric"))
-    truth = read_poses(annotated, "/ground_truth/pose").interpolate(
-        frame_times_ns(log)[metric.vertex_ids]
-    )
+    _, metric, truth = metric_graph_and_truth(annotated)
     oracle = dataclasses.replace(metric, loop_edges=oracle_edges(metric, truth))
     cells = [f"{check.umeyama_rmse(metric.poses.positions, truth.positions):.3f}"]
     for translation, rotation in ODOMETRY_FACTORS:
@@ -199,10 +205,7 @@ def odometry_weight_table() -> None:
         seeds = [(f"seed {s} (calibration)", s) for s in (5, 7, 13, 17)]
         seeds += [(f"seed {s}", s) for s in (29, 2, 20)]
         drives = [(name, check.generate_drifting_drive(root, s)) for name, s in seeds]
-        for k, (name, log) in enumerate(drives + COMMITTED):
-            annotated = root / f"annotated{k}.mcap"
-            if cli_main(["annotate", str(log), "-o", str(annotated)]) != 0:
-                raise RuntimeError(f"annotate {log} failed")
+        for name, annotated in annotated_drives(root, drives + COMMITTED):
             print(odometry_weight_row(name, annotated), flush=True)
 
 
