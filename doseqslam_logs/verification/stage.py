@@ -51,16 +51,18 @@ frame pairs checked (16,450 of 42,569) and turned 99 of 2,128 such checks into a
 126,934) for 5,119 true pairs instead of 5,360, a true loop closure in 84.1 % of the seconds
 that revisit a place instead of 86.6 %, and no false pair (docs/results.md, "Near misses are
 not searched again").
-Two hopeless checks in a row give the sequence up: its remaining candidates are skipped too
-(reason "sequence given up"). The candidates of a sequence lie on one trajectory of the
+Two hopeless checks in a row give a proposal up, one an alternative (a second guess: on the
+first 20 minutes of the 10 Hz hour, 7 % fewer frame pairs and the same 776 accepted ones);
+once every proposal is, the sequence's remaining candidates are skipped too (reason "sequence
+given up"). The candidates of a sequence lie on one trajectory of the
 detector, so a trajectory that is wrong at two queries stays wrong. On the first 30 minutes
 of the 10 Hz hour, giving up checked 39 % fewer pairs and accepted the same 368 pairs; the
 2s grid then checked 30 % fewer again, with the same 318 true pairs among 367 accepted
 (docs/performance.md). At s = 1 every candidate gets the exhaustive window, exactly as before.
 At s > 1 the next-best trajectories are proposals of their own, each checked by the rules above
-(tracked, coarse to fine, given up after two hopeless checks): a revisit whose true visit is an
+(tracked, coarse to fine, given up after one hopeless check): a revisit whose true visit is an
 alternative (the indexed place search proposes the other visits of a place so) is found there,
-at a cost of at most two hopeless checks per wrong alternative and sequence (`_strided`).
+at a cost of at most one hopeless check per wrong alternative and sequence (`_strided`).
 
 Sequences at a high frame rate are short (about 2 s of a 10 Hz drive), and on a revisit the
 next one drives on through the place the last one was verified at. So each sequence is handed
@@ -116,6 +118,10 @@ GIVEN_UP_REASON = "sequence given up"
 SKIPPED_REASONS = (SKIPPED_REASON, GIVEN_UP_REASON)
 # Hopeless checks in a row after which a sequence's remaining candidates are skipped.
 GIVE_UP_AFTER = 2
+# At a high frame rate, a next-best trajectory is given up after this many: it is a second
+# guess, and on the first 20 minutes of the 10 Hz hour a second search of one whose first was
+# hopeless never turned into an accepted pair (7 % of the frame pairs; docs/results.md).
+GIVE_UP_ALTERNATIVE_AFTER = 1
 # A window is searched on every (COARSE_GRID * s)-th frame first, then finer (module docstring).
 COARSE_GRID = 2
 # A check that passes but is not bracketed walks on at most this many refine_radius past its
@@ -352,14 +358,18 @@ class Verifier:
         one more, tried first: the previous sequence's place continued, its first check
         tracked from the hint as from a previous check (`_continued`). Each proposal is
         tracked on its own (the offset of its last check) and given up after GIVE_UP_AFTER
-        hopeless checks in a row; the proposal accepted last is tried first, so a sequence
+        hopeless checks in a row (an alternative after GIVE_UP_ALTERNATIVE_AFTER); the
+        proposal accepted last is tried first, so a sequence
         whose revisit lies on an alternative checks that one alone while it keeps passing.
         The sequence is given up once every proposal is. A candidate costs at most one
-        coarse-to-fine search per proposal, and each wrong proposal two hopeless ones per
-        sequence: bounded by (1 + alternatives) x the cost without alternatives.
+        coarse-to-fine search per proposal, and each wrong proposal at most two hopeless ones
+        per sequence: bounded by (1 + alternatives) x the cost without alternatives.
         """
-        proposals = 1 + len(decision.alternatives) + (hint is not None)
+        alternatives = len(decision.alternatives)
+        proposals = 1 + alternatives + (hint is not None)
         runs = [0] * proposals  # hopeless checks in a row, per proposal
+        limits = [GIVE_UP_AFTER] * proposals
+        limits[1 : 1 + alternatives] = [GIVE_UP_ALTERNATIVE_AFTER] * alternatives
         last: list[PairCheck | None] = [None] * proposals  # each one's last check
         first = 0  # the proposal tried first: the last accepted
         if hint is not None:  # the last slot; tracked from the hint, tried first
@@ -371,7 +381,7 @@ class Verifier:
                 checks.append(PairCheck(candidate, candidate.match_index, self._skipped()))
                 continue
             order = [first, *(k for k in range(proposals) if k != first)]
-            live = [k for k in order if runs[k] < GIVE_UP_AFTER]
+            live = [k for k in order if runs[k] < limits[k]]
             if not live:
                 given_up = self._skipped(GIVEN_UP_REASON)
                 checks.append(PairCheck(candidate, candidate.match_index, given_up))
@@ -383,7 +393,7 @@ class Verifier:
                 check = self._check(proposed, decision.database_size, stride, last[k], {}, seen)
                 last[k] = check
                 runs[k] = runs[k] + 1 if self._hopeless(check.verdict) else 0
-                result = self._numbered(candidate, check, k, len(decision.alternatives))
+                result = self._numbered(candidate, check, k, alternatives)
                 if kept is None or check.accepted or k == 0:  # rejected: the own check
                     kept = result
                 if check.accepted:
