@@ -177,9 +177,13 @@ def test_a_tracked_check_near_enough_is_not_searched_again(monkeypatch) -> None:
     per_query = Counter(q for q, _ in checked)
     first_search = per_query.pop(200)
     # The first: the 2s grid over its window 75..125, the match among them (5), the s grid
-    # within 2s - 1 of the best (2: 95, 105), the frames within s - 1 of it (8). The others:
-    # the frame at the previous offset (0), itself on the s grid: one frame each.
-    assert first_search == 15
+    # within 2s - 1 of the best (2: 95, 105), then the best's frames 2 either side (98, 102;
+    # ties go to the match, 100), then 1 (99, 101): 11 (every frame within s - 1 took 8, 15 in
+    # all). The others: the frame at the previous offset (0), itself on the s grid: one each.
+    assert first_search == 11
+    assert sorted(m for q, m in checked if q == 200) == [
+        *(80, 90, 95, 98, 99, 100, 101, 102, 105, 110, 120)
+    ]
     assert per_query == {205: 1, 210: 1, 215: 1, 220: 1, 225: 1}
     assert stats.pairs == first_search + 5
 

@@ -38,8 +38,12 @@ frames are near copies, and checking each of them against 2r + 1 frames would co
 the detector (a 10 Hz hour has ~34,000 candidates). There the stage checks every s-th
 candidate of a sequence (the others are recorded as skipped, not reported), and searches the
 window coarse to fine: the match and every frame whose index is a multiple of 2s, then the
-multiples of s within 2s of the best, then every frame within s of the best, each finer step
-only when the best so far is not hopeless (under half of min_inliers).
+multiples of s within 2s of the best, then the two frames s // 2 on either side of the best,
+then s // 4, ... down to 1 (at s = 5: 2, then 1), each finer step only when the best so far is
+not hopeless (under half of min_inliers). That last halving checks 4 frames where every frame
+within s of the best took 8: on the 10 Hz hour 82,893 frame pairs instead of 92,325 for 5,112
+true pairs instead of 5,119, a true loop closure in 84.0 % of the revisiting seconds instead of
+84.1 % (docs/results.md, "Fewer frame pairs, faster matching").
 The next checked candidate of the sequence first looks at the frame at the previous one's
 offset from its match and the grid frames beside it: accepted there, it is done; rejected but
 not hopeless there (not bracketed, too few inliers, turned too far), it is rejected too, the
@@ -487,11 +491,13 @@ class Verifier:
         # candidates, whose windows overlap this one, find most of their frames in the cache.
         coarse = COARSE_GRID * stride
         refined, verdict = best(m for m in window if m % coarse == 0 or m == match)
-        for spacing, reach in ((stride, coarse - 1), (1, stride - 1)):
-            if self._hopeless(verdict):  # its near copies on either side will not pass either
-                break
-            near = range(refined - reach, refined + reach + 1)
-            refined, verdict = best(m for m in near if m % spacing == 0)
+        if not self._hopeless(verdict):  # its near copies on either side will not pass either
+            near = range(refined - coarse + 1, refined + coarse)
+            refined, verdict = best(m for m in near if m % stride == 0)
+        step = stride // 2  # then halving steps around the best, down to its neighbours
+        while step and not self._hopeless(verdict):
+            refined, verdict = best((refined - step, refined + step))
+            step //= 2
         return placed(refined, verdict)
 
     def _walk(
