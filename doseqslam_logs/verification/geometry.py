@@ -28,6 +28,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..detector.segmentation import feature_image
+from .hamming import two_nearest
 from .params import VerificationParameters
 
 GrayImage = npt.NDArray[np.uint8]
@@ -385,18 +386,20 @@ def _ratio_matches(
 
     Many-to-one matches (repeated texture, e.g. a corridor's doors) would each count as an
     inlier of the same point; keeping one per feature stops them inflating the count. The two
-    nearest neighbours come from `cv2.batchDistance` as arrays (brute force, like BFMatcher's
-    knnMatch, whose matches it reproduces: tested), so no Python object is made per feature
-    and the GIL stays free for the other verification thread.
+    nearest neighbours come as arrays (brute force, like BFMatcher's knnMatch, whose matches
+    it reproduces: tested), so no Python object is made per feature and the GIL stays free
+    for the other verification thread: binary descriptors' from `hamming.two_nearest`, SIFT's
+    from `cv2.batchDistance`.
     """
     a: npt.NDArray[Any] = query.descriptors
     b: npt.NDArray[Any] = match.descriptors
-    norm, dtype = cv2.NORM_HAMMING, cv2.CV_32S
-    if query.detector == "sift":  # float L2 is faster than OpenCV's uint8 L2 path
-        norm, dtype, a, b = cv2.NORM_L2, cv2.CV_32F, a.astype(np.float32), b.astype(np.float32)
     if len(a) == 0 or len(b) < 2:  # no second neighbour: no match passes the ratio test
         return np.empty(0, np.int64), np.empty(0, np.int64)
-    distance, nearest = cv2.batchDistance(a, b, dtype, normType=norm, K=2)
+    if query.detector == "sift":  # float L2 is faster than OpenCV's uint8 L2 path
+        a, b = a.astype(np.float32), b.astype(np.float32)
+        distance, nearest = cv2.batchDistance(a, b, cv2.CV_32F, normType=cv2.NORM_L2, K=2)
+    else:  # binary descriptors: Hamming distances
+        distance, nearest = two_nearest(a, b)
     passed = distance[:, 0] < ratio * distance[:, 1]
     q_index = np.flatnonzero(passed)
     m_index = nearest[q_index, 0].astype(np.int64)
