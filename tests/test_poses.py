@@ -329,25 +329,17 @@ def test_poses_are_kept_as_arrays_and_a_short_covariance_is_one_clear_error() ->
     message's, so it stops the read with one line."""
     from doseqslam_logs.sources import poses
 
-    columns = poses._Columns(with_covariance=False)
-    columns.add(
-        Path("x.mcap"), "/odom", poses._Pose(2, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 2.0], None)
-    )
-    columns.add(
-        Path("x.mcap"), "/odom", poses._Pose(1, [4.0, 5.0, 6.0], [0.0, 0.0, 0.0, 1.0], None)
-    )
-    track = poses._track(Path("x.mcap"), "/odom", columns)
+    columns = poses._Columns(Path("x.mcap"), "/odom", with_covariance=False)
+    columns.add(poses._Pose(2, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 2.0], None))
+    columns.add(poses._Pose(1, [4.0, 5.0, 6.0], [0.0, 0.0, 0.0, 1.0], None))
+    track = poses._track(columns)
     assert track.times_ns.tolist() == [1, 2]
     assert track.positions.tolist() == [[4.0, 5.0, 6.0], [1.0, 2.0, 3.0]]
     assert track.quaternions_xyzw.tolist() == [[0.0, 0.0, 0.0, 1.0]] * 2
     assert track.covariances is None
-    with_covariance = poses._Columns(with_covariance=True)
-    with_covariance.add(
-        Path("x.mcap"), "/odom", poses._Pose(1, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 36)
-    )
+    with_covariance = poses._Columns(Path("x.mcap"), "/odom", with_covariance=True)
+    with_covariance.add(poses._Pose(1, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 36))
     with pytest.raises(
         SourceError, match=r"x\.mcap: topic '/odom' has a covariance of 35 values, not 36"
     ):
-        with_covariance.add(
-            Path("x.mcap"), "/odom", poses._Pose(2, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 35)
-        )
+        with_covariance.add(poses._Pose(2, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 35))

@@ -134,12 +134,12 @@ def read_poses(path: str | Path, topic: str) -> PoseTrack:
     with open_source(path) as source:
         types = [c.message_type for c in source.channels() if c.topic == topic]
         kind = _check_type(path, topic, [n for t in types for n in t.split(", ")])
-        columns = _Columns(with_covariance=kind in _WITH_COVARIANCE)
+        columns = _Columns(path, topic, with_covariance=kind in _WITH_COVARIANCE)
         for m in source.messages(topic):
-            columns.add(path, topic, _pose(kind, m.message, m.log_time_ns))
+            columns.add(_pose(kind, m.message, m.log_time_ns))
     if not columns.times:
         raise SourceError(f"{path}: topic {topic!r} holds no messages")
-    return _track(path, topic, columns)
+    return _track(columns)
 
 
 def _check_type(path: Path, topic: str, type_names: list[str]) -> str:
@@ -203,16 +203,18 @@ class _Columns:
     Python object each, with lists of floats, the 144,000 Odometry messages of a 4-hour log
     took a process from 48 to 428 MB (docs/performance.md)."""
 
-    def __init__(self, with_covariance: bool) -> None:
+    def __init__(self, path: Path, topic: str, with_covariance: bool) -> None:
+        self.path, self.topic = path, topic  # for errors
         self.times = array("q")
         self.poses = array("d")  # x, y, z, qx, qy, qz, qw per message
         self.covariances = array("d")  # 36 per message, when the type has a covariance
         self.with_covariance = with_covariance
 
-    def add(self, path: Path, topic: str, pose: _Pose) -> None:
+    def add(self, pose: _Pose) -> None:
         if pose.covariance is not None and len(pose.covariance) != 36:
             raise SourceError(
-                f"{path}: topic {topic!r} has a covariance of {len(pose.covariance)} values, not 36"
+                f"{self.path}: topic {self.topic!r} has a covariance of "
+                f"{len(pose.covariance)} values, not 36"
             )
         self.times.append(pose.time_ns)
         self.poses.extend(pose.position + pose.quaternion)
@@ -220,7 +222,8 @@ class _Columns:
             self.covariances.extend(pose.covariance)
 
 
-def _track(path: Path, topic: str, columns: _Columns) -> PoseTrack:
+def _track(columns: _Columns) -> PoseTrack:
+    path, topic = columns.path, columns.topic
     # Stable: the first of equal times comes first.
     unsorted = np.frombuffer(columns.times, dtype=np.int64)
     order = np.argsort(unsorted, kind="stable")
