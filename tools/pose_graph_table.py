@@ -22,11 +22,18 @@ metric model's information).
 odometry edges' information: each odometry edge's covariance (the /odom messages' pose
 covariance per frame spanned) multiplied by each factor, on the calibration drives (seeds 5, 7,
 13, 17), the table's drifting drives and the committed samples (docs/export.md, "How much the
-odometry edges weigh").
+odometry edges weigh"); the odometry as stated, not calibrated.
+
+`--calibration` prints the odometry calibration's table (docs/export.md, "The odometry
+calibrated from the loop edges"): on the calibration drives (seeds 5, 7, 13, 17, 3, 23, 31,
+37), the table's drifting drives, drives of other seeds, routes and lengths, and the committed
+samples, the ATE of the metric and the oracle graphs with the odometry as stated and
+calibrated, the loop edges the outlier check rejected, and the bias and scale found.
 
     python tools/pose_graph_table.py [--wrong 5]
     python tools/pose_graph_table.py --metric
     python tools/pose_graph_table.py --odometry-weights
+    python tools/pose_graph_table.py --calibration
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+import make_sample_logs as gen
 import numpy as np
 import pose_graph_check as check
 from scipy.spatial.transform import Rotation
@@ -184,10 +192,11 @@ def odometry_weight_row(name: str, annotated: Path) -> str:
     _, metric, truth = metric_graph_and_truth(annotated)
     oracle = dataclasses.replace(metric, loop_edges=oracle_edges(metric, truth))
     cells = [f"{check.umeyama_rmse(metric.poses.positions, truth.positions):.3f}"]
+    stated = OptimizeOptions(calibrate_odometry=False)
     for translation, rotation in ODOMETRY_FACTORS:
         ate = [
             check.umeyama_rmse(
-                optimize_pose_graph(scaled_odometry(g, translation, rotation)).positions,
+                optimize_pose_graph(scaled_odometry(g, translation, rotation), stated).positions,
                 truth.positions,
             )
             for g in (metric, oracle)
@@ -209,6 +218,67 @@ def odometry_weight_table() -> None:
             print(odometry_weight_row(name, annotated), flush=True)
 
 
+# Drives of other seeds, routes and lengths than the calibration's (seed, route, options).
+OTHER_DRIVES: tuple[tuple[int, gen.Route, dict[str, float | bool]], ...] = (
+    (41, "loops", {}),
+    (43, "loops", {}),
+    (47, "loops", {}),
+    (61, "outandback", {"variable_rate": True, "drop_frames": 4}),
+    (67, "outandback", {"variable_rate": True}),
+    (71, "loops", {"duration": 300.0}),
+)
+
+
+def generated_drive(folder: Path, seed: int, route: gen.Route, **options: float | bool) -> Path:
+    """A drive made like the drifting drives (256x192 at 2 Hz, 120 s unless said)."""
+    settings: dict[str, object] = {"duration": 120.0, **options}
+    config = gen.Config(
+        name=f"{route}{seed}", seed=seed, route=route, rate=2.0, width=256, height=192,
+        formats=("ros2mcap",), quality=70, noise_sigma=1.5, **settings,  # type: ignore[arg-type]
+    )  # fmt: skip
+    gen.generate(config, folder, progress=False)
+    return folder / f"{route}{seed}.ros2.mcap"
+
+
+def calibration_row(name: str, annotated: Path) -> str:
+    """ATE of the metric and oracle graphs, odometry as stated and calibrated."""
+    _, metric, truth = metric_graph_and_truth(annotated)
+    oracle = dataclasses.replace(metric, loop_edges=oracle_edges(metric, truth))
+    cells = [", ".join(f"{n} {m}" for m, n in metric.loop_models.items()) or "none"]
+    cells.append(f"{check.umeyama_rmse(metric.poses.positions, truth.positions):.3f}")
+    for options in (OptimizeOptions(calibrate_odometry=False), OptimizeOptions()):
+        found = optimize_pose_graph(metric, options)
+        ate = check.umeyama_rmse(found.positions, truth.positions)
+        best = check.umeyama_rmse(optimize_pose_graph(oracle, options).positions, truth.positions)
+        cells.append(f"{ate:.3f} / {best:.3f} ({ate / best:.2f})")
+    calibration = found.calibration
+    cells.append(f"{len(found.rejected_loop_edges)}")
+    if calibration.applied:
+        cells.append(f"{np.degrees(calibration.yaw_rate_bias):+.3f}")
+        cells.append(f"{calibration.covariance_scale:.2g}")
+    else:
+        cells += ["-", "-"]
+    return f"| {name} | " + " | ".join(cells) + " |"
+
+
+def calibration_table() -> None:
+    print(
+        "| drive | loop edges | ATE odometry | as stated: metric / oracle | calibrated: metric "
+        "/ oracle | rejected | bias, deg/s | covariance x |"
+    )
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    with tempfile.TemporaryDirectory() as scratch:
+        root = Path(scratch)
+        seeds = [(f"seed {s} (calibration)", s) for s in (5, 7, 13, 17, 3, 23, 31, 37)]
+        seeds += [(f"seed {s}", s) for s in (29, 2, 20)]
+        drives = [(name, check.generate_drifting_drive(root, s)) for name, s in seeds]
+        for seed, route, options in OTHER_DRIVES:
+            label = " ".join([f"seed {seed} {route}", *(f"{k}={v}" for k, v in options.items())])
+            drives.append((label, generated_drive(root, seed, route, **options)))
+        for name, annotated in annotated_drives(root, drives + COMMITTED):
+            print(calibration_row(name, annotated), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--wrong", type=int, default=5, help="wrong loop edges to inject")
@@ -216,7 +286,13 @@ def main() -> None:
     parser.add_argument(
         "--odometry-weights", action="store_true", help="ATE against the odometry's weight"
     )
+    parser.add_argument(
+        "--calibration", action="store_true", help="ATE with the odometry as stated and calibrated"
+    )
     args = parser.parse_args()
+    if args.calibration:
+        calibration_table()
+        return
     if args.metric:
         metric_table()
         return

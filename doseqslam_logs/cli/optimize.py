@@ -59,6 +59,12 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     parser.add_argument(
         "--no-outlier-check", action="store_true", help="keep every loop edge (kernel only)"
     )
+    parser.add_argument(
+        "--no-odometry-calibration",
+        action="store_true",
+        help="take the odometry's covariance as stated, with no yaw-rate bias (default: both "
+        "calibrated from the metric loop edges; docs/export.md)",
+    )
     parser.add_argument("--json", action="store_true", help="the summary as one JSON object")
     parser.set_defaults(run=run)
 
@@ -70,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         kernel_width=args.kernel_width,
         outlier_check=not args.no_outlier_check,
         outlier_bound=args.outlier_bound,
+        calibrate_odometry=not args.no_odometry_calibration,
     )
     result = optimize_log(args.log, args.output, options, optimize_options)
     print(json.dumps(result.to_json()) if args.json else result.summary)

@@ -36,6 +36,12 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..errors import UsageError
+from .odometry_calibration import (
+    OdometryCalibration,
+    calibrate_odometry,
+    calibrated_graph,
+    chain_covariances,
+)
 from .pose_graph import Edge, PoseGraph
 
 F64 = npt.NDArray[np.float64]
@@ -85,6 +91,9 @@ class OptimizeOptions:
     outlier_check: bool = True  # drop loop edges above outlier_bound and optimize again
     outlier_bound: float = DEFAULT_OUTLIER_BOUND  # on a loop edge's squared Mahalanobis error
     max_iterations: int = 100  # Levenberg-Marquardt, per round
+    # Yaw-rate bias and covariance scale of the odometry from the metric loop edges
+    # (odometry_calibration.py); off: the /odom covariance as stated, no bias.
+    calibrate_odometry: bool = True
 
     def __post_init__(self) -> None:
         """Raises ValueError for an unknown kernel or a width, bound or count that is not > 0."""
@@ -173,6 +182,7 @@ class OptimizedGraph:
     error_after: float  # the same graph's error at the optimum
     loop_edges_kept: int
     rejected_loop_edges: list[int] = field(default_factory=list)  # indices into loop_edges
+    calibration: OdometryCalibration = field(default_factory=OdometryCalibration)
 
     def summary(self, graph: PoseGraph) -> str:
         """E.g. '240 vertices, 239 odometry edges, 65 loop edges; 12 iterations, error
@@ -184,7 +194,7 @@ class OptimizedGraph:
             f"{self.iterations} iterations, "
             f"error {self.error_before:.6g} -> {self.error_after:.6g}; loop edges: "
             f"{self.loop_edges_kept} kept, {len(self.rejected_loop_edges)} rejected by the "
-            "outlier check"
+            f"outlier check; {self.calibration.summary()}"
         )
 
 
@@ -210,14 +220,30 @@ def _optimize_once(gtsam_graph: GtsamGraph, options: OptimizeOptions) -> _Round:
     )
 
 
-def squared_loop_errors(gtsam_graph: GtsamGraph, values: Any, loops: Sequence[Edge]) -> F64:
-    """Each loop edge's squared Mahalanobis error e^T I e at `values`, with its Gaussian
-    information (the kernel left out): chi-square with 6 degrees of freedom for a right edge
-    whose information is right."""
+def squared_loop_errors(
+    gtsam_graph: GtsamGraph,
+    values: Any,
+    loops: Sequence[Edge],
+    odometry_covariances: F64 | None = None,
+) -> F64:
+    """Each loop edge's squared Mahalanobis error e^T C^-1 e at `values`, C its Gaussian
+    covariance (the kernel left out): chi-square with 6 degrees of freedom for a right edge
+    whose information is right. With `odometry_covariances` ((L, 6, 6), ROS order), C is the
+    loop edge's covariance plus that of the odometry between its two vertices: a calibrated,
+    stiff odometry leaves a right loop edge a residual that its own covariance alone does not
+    explain."""
     errors = []
-    for factor_index, edge in zip(gtsam_graph.loop_factors, loops, strict=True):
+    for k, (factor_index, edge) in enumerate(zip(gtsam_graph.loop_factors, loops, strict=True)):
         residual = np.asarray(gtsam_graph.graph.at(factor_index).unwhitenedError(values))
-        errors.append(float(residual @ gtsam_information(edge.information) @ residual))
+        if odometry_covariances is None:
+            errors.append(float(residual @ gtsam_information(edge.information) @ residual))
+            continue
+        # A rotation-only edge measures no translation: only the axes it measures are tested.
+        axes = np.flatnonzero(np.diagonal(edge.information) > 0)
+        covariance = np.linalg.inv(edge.information[np.ix_(axes, axes)])
+        covariance += odometry_covariances[k][np.ix_(axes, axes)]
+        ros = residual[_GTSAM_ORDER][axes]  # the same permutation both ways
+        errors.append(float(ros @ np.linalg.solve(covariance, ros)))
     return np.asarray(errors, np.float64)
 
 
@@ -225,6 +251,11 @@ def optimize_pose_graph(graph: PoseGraph, options: OptimizeOptions | None = None
     """Levenberg-Marquardt on `graph` with the robust loop edges and the outlier check of
     `options` (module docstring). Raises UsageError without GTSAM."""
     options = options or OptimizeOptions()
+    calibration = (
+        calibrate_odometry(graph) if options.calibrate_odometry else OdometryCalibration(off=True)
+    )
+    graph = calibrated_graph(graph, calibration)
+    chains = chain_covariances(graph, graph.loop_edges) if calibration.applied else None
     kept = list(range(len(graph.loop_edges)))
     iterations = rounds = 0
     while True:
@@ -234,7 +265,10 @@ def optimize_pose_graph(graph: PoseGraph, options: OptimizeOptions | None = None
         iterations, rounds = iterations + done.iterations, rounds + 1
         if not options.outlier_check or rounds >= MAX_OUTLIER_ROUNDS:
             break
-        outliers = squared_loop_errors(gtsam_graph, done.result, loops) > options.outlier_bound
+        squared = squared_loop_errors(
+            gtsam_graph, done.result, loops, None if chains is None else chains[kept]
+        )
+        outliers = squared > options.outlier_bound
         if not outliers.any():
             break
         kept = [i for i, outlier in zip(kept, outliers, strict=True) if not outlier]
@@ -249,6 +283,7 @@ def optimize_pose_graph(graph: PoseGraph, options: OptimizeOptions | None = None
         error_after=done.error_after,
         loop_edges_kept=len(kept),
         rejected_loop_edges=sorted(set(range(len(graph.loop_edges))) - set(kept)),
+        calibration=calibration,
     )
 
 

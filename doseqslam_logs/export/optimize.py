@@ -64,6 +64,7 @@ class OptimizeResult:
             "error_after": optimized.error_after,
             "loop_edges_kept": optimized.loop_edges_kept,
             "loop_edges_rejected": len(optimized.rejected_loop_edges),
+            "odometry_calibration": optimized.calibration.to_json(),
             "frames_outside_odometry": self.graph.frames_outside_odometry,
             "loop_closures_left_out": self.graph.loop_closures_left_out,
         }
