@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from ..export import FORMATS, ExportOptions, export_log
@@ -46,6 +47,12 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "--include-rejected",
         action="store_true",
         help="csv/jsonl: also the pairs verification rejected or skipped (column verification)",
+    )
+    parser.add_argument(
+        "--calibrate-odometry",
+        action="store_true",
+        help="g2o: odometry edges calibrated from the metric loop edges (a yaw-rate bias and a "
+        "covariance factor), as optimize does by default; default: /odom as stated",
     )
     add_pose_graph_options(parser)
     parser.set_defaults(run=run)
@@ -118,9 +125,10 @@ def pose_graph_options(args: argparse.Namespace, include_rejected: bool = False)
 
 
 def run(args: argparse.Namespace) -> int:
-    result = export_log(
-        args.log, args.format, pose_graph_options(args, args.include_rejected), args.output
+    options = replace(
+        pose_graph_options(args, args.include_rejected), calibrate_odometry=args.calibrate_odometry
     )
+    result = export_log(args.log, args.format, options, args.output)
     if args.output is None:
         for chunk in result.chunks:
             sys.stdout.write(chunk)

@@ -32,6 +32,9 @@ class ExportOptions:
     loop_rotation_sigma_deg: float = DEFAULT_LOOP_ROTATION_SIGMA_DEG
     use_verified_rotation: bool = True  # g2o: a verified pair's relative rotation, if recorded
     loop_model: LoopModel = "metric"  # g2o/optimize: loop edges' measurement (LOOP_MODELS)
+    # g2o: odometry edges calibrated from the metric loop edges, as `optimize` does by default
+    # (export/odometry_calibration.py); off, the odometry as /odom states it.
+    calibrate_odometry: bool = False
 
     @property
     def loop_rotation_sigma_rad(self) -> float:

@@ -11,7 +11,9 @@ information on its translation in GTSAM terms) gets G2O_UNCONSTRAINED_INFORMATIO
 translation diagonal instead, with a zero translation that it leaves free. Vertex ids are
 frame indices. Odometry edges come first, then loop edges (in log order). The information is
 the upper triangle of the 6 x 6 matrix, row by row. `FIX` holds the first vertex in g2o;
-GTSAM's readG2o ignores it (add a prior there).
+GTSAM's readG2o ignores it (add a prior there). With `calibrate_odometry`, the odometry edges
+and the vertices are those of the odometry calibrated from the metric loop edges (its bias
+and factor in a `#` line), as `optimize` builds its graph.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from ..annotations.reader import AnnotatedLog
 from ..annotations.records import ROTATION_ONLY
 from ..errors import UsageError
 from .base import Exporter, ExportOptions, ExportResult
+from .odometry_calibration import OdometryCalibration, calibrate_odometry, calibrated_graph
 from .pose_graph import Edge, PoseGraph, build_pose_graph
 
 _UPPER = np.triu_indices(6)
@@ -86,8 +89,12 @@ def _placeholder_lines(options: ExportOptions, prefix: str) -> list[str]:
     ]
 
 
-def g2o_lines(graph: PoseGraph, options: ExportOptions) -> Iterator[str]:
+def g2o_lines(
+    graph: PoseGraph, options: ExportOptions, calibration: OdometryCalibration | None = None
+) -> Iterator[str]:
     yield from header_lines(options, graph)
+    if calibration is not None:
+        yield f"# odometry edges: {calibration.summary()} (docs/export.md)\n"
     for k, vertex_id in enumerate(graph.vertex_ids):
         pose = [*graph.poses.positions[k], *graph.poses.quaternions_xyzw[k]]
         yield f"VERTEX_SE3:QUAT {vertex_id} {_numbers(pose)}\n"
@@ -104,7 +111,13 @@ def require_odometry_topic(options: ExportOptions, format_name: str) -> None:
 def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
     require_odometry_topic(options, "g2o")
     graph = build_pose_graph(log, options)
-    return ExportResult(g2o_lines(graph, options), graph.summary)
+    if not options.calibrate_odometry:
+        return ExportResult(g2o_lines(graph, options), graph.summary)
+    calibration = calibrate_odometry(graph)
+    graph = calibrated_graph(graph, calibration)
+    return ExportResult(
+        g2o_lines(graph, options, calibration), f"{graph.summary}; {calibration.summary()}"
+    )
 
 
 EXPORTER = Exporter(

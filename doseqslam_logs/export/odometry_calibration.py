@@ -180,42 +180,43 @@ def _integrate(odometry: _Odometry, bias: float) -> _Chain:
 
 
 @dataclass(frozen=True)
-class _Discrepancy:
-    residual: F64  # (6,), ROS order: the measurement in the chain's end frame
-    chain_covariance: F64  # (6, 6), at scale 1
-    edge_covariance: F64  # (6, 6)
-    moving_time: float  # signed
+class _Discrepancies:
+    """Each loop edge against the odometry chain between its two vertices."""
+
+    residuals: F64  # (L, 6), ROS order: the measurement in the chain's end frame
+    chain_covariances: F64  # (L, 6, 6), the odometry as stated (scale 1)
+    edge_covariances: F64  # (L, 6, 6)
+    moving_times: F64  # (L,), signed
 
 
 def _discrepancies(
     graph: PoseGraph, loops: Sequence[Edge], odometry: _Odometry, bias: float
-) -> list[_Discrepancy]:
+) -> _Discrepancies:
     chain = _integrate(odometry, bias)
     index = {int(v): k for k, v in enumerate(graph.vertex_ids)}
-    found = []
+    residuals, covariances, moving = [], [], []
     for loop in loops:
-        rotation, translation, covariance, moving = chain.between(
+        rotation, translation, covariance, time = chain.between(
             index[loop.from_id], index[loop.to_id]
         )
         measured = Rotation.from_quat(loop.quaternion_xyzw).as_matrix()
-        residual = np.concatenate(
-            [
-                rotation.T @ (loop.translation - translation),
-                Rotation.from_matrix(rotation.T @ measured).as_rotvec(),
-            ]
-        )
-        edge_covariance = np.asarray(np.linalg.inv(loop.information), np.float64)
-        found.append(_Discrepancy(residual, covariance, edge_covariance, moving))
-    return found
-
-
-def _bias_step(found: Sequence[_Discrepancy], scale: float) -> float:
-    """The heading residuals' robust slope against the time of motion (rad/s)."""
-    heading = np.array([d.residual[5] for d in found])
-    times = np.array([d.moving_time for d in found])
-    variances = np.array(
-        [scale * d.chain_covariance[5, 5] + d.edge_covariance[5, 5] for d in found]
+        turn = Rotation.from_matrix(rotation.T @ measured).as_rotvec()
+        residuals.append(np.concatenate([rotation.T @ (loop.translation - translation), turn]))
+        covariances.append(covariance)
+        moving.append(time)
+    information = np.array([loop.information for loop in loops], np.float64)
+    return _Discrepancies(
+        np.asarray(residuals, np.float64).reshape(-1, 6),
+        np.asarray(covariances, np.float64).reshape(-1, 6, 6),
+        np.asarray(np.linalg.inv(information), np.float64),
+        np.asarray(moving, np.float64),
     )
+
+
+def _bias_step(found: _Discrepancies, scale: float) -> float:
+    """The heading residuals' robust slope against the time of motion (rad/s)."""
+    heading, times = found.residuals[:, 5], found.moving_times
+    variances = scale * found.chain_covariances[:, 5, 5] + found.edge_covariances[:, 5, 5]
     slope = 0.0
     for _ in range(_IRLS_STEPS):
         whitened = (heading - slope * times) / np.sqrt(variances)
@@ -224,16 +225,13 @@ def _bias_step(found: Sequence[_Discrepancy], scale: float) -> float:
     return slope
 
 
-def _median_excess(found: Sequence[_Discrepancy], log_scale: float) -> float:
-    scale = float(np.exp(log_scale))
-    squared = [
-        d.residual @ np.linalg.solve(scale * d.chain_covariance + d.edge_covariance, d.residual)
-        for d in found
-    ]
-    return float(np.median(squared)) - CHI2_6_MEDIAN
+def _median_excess(found: _Discrepancies, log_scale: float) -> float:
+    covariances = np.exp(log_scale) * found.chain_covariances + found.edge_covariances
+    solved = np.linalg.solve(covariances, found.residuals[..., None])[..., 0]
+    return float(np.median(np.sum(found.residuals * solved, axis=1))) - CHI2_6_MEDIAN
 
 
-def _scale_step(found: Sequence[_Discrepancy]) -> float:
+def _scale_step(found: _Discrepancies) -> float:
     low, high = np.log(MIN_COVARIANCE_SCALE), np.log(MAX_COVARIANCE_SCALE)
     if _median_excess(found, low) <= 0:
         return MIN_COVARIANCE_SCALE
