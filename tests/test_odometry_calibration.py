@@ -5,6 +5,7 @@ bias; its effect on a real drifting drive is tested in tests/test_optimize.py.""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -215,3 +216,49 @@ def test_the_covariance_scale_follows_the_odometry_s_real_noise() -> None:
     for stated in (100.0, 0.01):
         found = calibrate_odometry(_circle_drive(BIAS, 0.0, wrong=0, stated=stated)[0])
         assert found.covariance_scale * stated == pytest.approx(honest, rel=0.02)
+
+
+def _out_and_back_drive(yaw_scale: float, bias_rad_s: float, seed: int = 1) -> PoseGraph:
+    """40 m out, a U-turn, 40 m back at 2 Hz; the odometry's turns off by `yaw_scale` of each
+    and its heading by `bias_rad_s` while it moves; loop edges from each back-leg vertex to the
+    out-leg vertex at the same place (facing the other way: the calibration only needs poses)."""
+    rng = np.random.default_rng(seed)
+    dt, leg = 1.0 / RATE_HZ, 80
+    straight = (np.eye(3), np.array([SPEED_MPS * dt, 0.0, 0.0]))
+    u_turn = (Rotation.from_rotvec([0, 0, math.pi / 10]).as_matrix(), np.array([0.5, 0.0, 0.0]))
+    true_steps = [straight] * leg + [u_turn] * 10 + [straight] * leg
+    odometry = []
+    for relative in true_steps:
+        angle = Rotation.from_matrix(relative[0]).as_rotvec()[2]
+        noise = rng.normal(0, ODOMETRY_SIGMAS)
+        turn = Rotation.from_rotvec([0, 0, yaw_scale * angle + bias_rad_s * dt]).as_matrix()
+        turn = turn @ Rotation.from_rotvec(noise[3:]).as_matrix()
+        odometry.append((turn @ relative[0], relative[1] + noise[:3]))
+    truth = [(np.eye(3), np.zeros(3))]
+    for relative in true_steps:
+        truth.append(_compose(truth[-1], relative))
+    positions = np.array([t[1] for t in truth])
+    information = np.diag(1.0 / LOOP_SIGMAS**2)
+    loops = []
+    for k in range(leg + 14, 2 * leg + 10, 3):
+        match = int(np.argmin(np.linalg.norm(positions[:leg] - positions[k], axis=1)))
+        relative = _compose(_inverse(truth[k]), truth[match])
+        loops.append(_edge("loop", k, match, relative, information, "odometry_pnp"))
+    times = np.arange(len(true_steps) + 1) * dt
+    return _graph(odometry, loops, times, ODOMETRY_SIGMAS)
+
+
+def test_a_yaw_scale_is_fitted_when_the_turns_explain_what_time_does_not() -> None:
+    """Out and back: every loop edge spans the same U-turn but a different time, so a 2 %
+    yaw scale shows as a constant heading offset that no yaw-rate bias explains. On the
+    circle, where the turns keep pace with time, the scale is not fitted (it would only fit
+    noise there: docs/export.md)."""
+    calibration = calibrate_odometry(_out_and_back_drive(0.02, BIAS))
+    assert calibration.yaw_scale == pytest.approx(0.02, rel=0.2)
+    assert calibration.yaw_rate_bias == pytest.approx(BIAS, rel=0.2)
+    assert re.search(
+        r"yaw-rate bias \+0\.0\d{3} deg/s, yaw scale \+\d\.\d\d %", calibration.summary()
+    )
+    without = calibrate_odometry(_out_and_back_drive(0.0, BIAS))
+    assert without.yaw_scale == 0.0  # not significant: left out
+    assert calibrate_odometry(_circle_drive(BIAS, 0.0, wrong=0)[0]).yaw_scale == 0.0

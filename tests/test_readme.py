@@ -39,7 +39,10 @@ _MASKS = [
     # optimize: GTSAM's error sums, which floating-point kernels may change in the last digits.
     (re.compile(r"\berror \S+ -> \S+;"), "error <e> -> <e>;"),
     # optimize: the odometry calibration's bias and factor, fitted to the metric poses.
-    (re.compile(r"yaw-rate bias \S+ deg/s, covariance x \S+$"), "yaw-rate bias <b>, x <s>"),
+    (
+        re.compile(r"yaw-rate bias \S+ deg/s, (?:yaw scale \S+ %|no yaw scale), covariance x \S+$"),
+        "yaw-rate bias <b>, x <s>",
+    ),
     # Full-precision floats (the csv row: SAD values, fitted rotations, metric poses): another
     # processor's kernels (AVX2 against AVX-512) may round them differently.
     (re.compile(r"-?\d+\.\d{6,}(?:e[-+]?\d+)?"), "<f>"),
@@ -346,9 +349,9 @@ def test_masks_hide_timings_only() -> None:
     assert mask("40 loop edges; 4 iterations, error 2.83306 -> 2.43347; loop edges") == (
         "40 loop edges; 4 iterations, error <e> -> <e>; loop edges"
     )
-    assert mask("46 metric loop edges: yaw-rate bias +0.0051 deg/s, covariance x 0.0001") == (
-        "46 metric loop edges: yaw-rate bias <b>, x <s>"
-    )
+    for heading in ("no yaw scale", "yaw scale -1.20 %"):
+        line = f"46 metric loop edges: yaw-rate bias +0.0051 deg/s, {heading}, covariance x 0.0001"
+        assert mask(line) == "46 metric loop edges: yaw-rate bias <b>, x <s>"
     assert mask("(within 2 m, 20 deg, >= 40 s apart, >= 20 m driven)").endswith(
         "40 s apart, >= 20 m driven)"
     )

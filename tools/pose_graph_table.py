@@ -226,6 +226,10 @@ OTHER_DRIVES: tuple[tuple[int, gen.Route, dict[str, float | bool]], ...] = (
     (61, "outandback", {"variable_rate": True, "drop_frames": 4}),
     (67, "outandback", {"variable_rate": True}),
     (71, "loops", {"duration": 300.0}),
+    (123, "outandback", {"variable_rate": True}),
+    (125, "outandback", {"variable_rate": True}),
+    (131, "figure8", {"duration": 240.0}),
+    (133, "figure8", {"duration": 240.0}),
 )
 
 
@@ -255,18 +259,19 @@ def calibration_row(name: str, annotated: Path) -> str:
     cells.append(f"{len(found.rejected_loop_edges)}")
     if calibration.applied:
         cells.append(f"{np.degrees(calibration.yaw_rate_bias):+.3f}")
+        cells.append(f"{100 * calibration.yaw_scale:+.2f}" if calibration.yaw_scale else "-")
         cells.append(f"{calibration.covariance_scale:.2g}")
     else:
-        cells += ["-", "-"]
+        cells += ["-", "-", "-"]
     return f"| {name} | " + " | ".join(cells) + " |"
 
 
 def calibration_table() -> None:
     print(
         "| drive | loop edges | ATE odometry | as stated: metric / oracle | calibrated: metric "
-        "/ oracle | rejected | bias, deg/s | covariance x |"
+        "/ oracle | rejected | bias, deg/s | yaw scale, % | covariance x |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
         seeds = [(f"seed {s} (calibration)", s) for s in (5, 7, 13, 17, 3, 23, 31, 37)]

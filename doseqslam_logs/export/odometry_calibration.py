@@ -13,8 +13,12 @@ edges weigh"). Calibrating both from the data solves the two at once:
    discrepancy between its measurement and the odometry chain between its two vertices, in
    the tangent space at the chain's end (translation, rotation vector; ROS order), with the
    chain's covariance propagated along it (adjoints, prefix sums: linear in the graph).
-2. The yaw-rate bias b: the heading part of the discrepancies is linear in the time the
-   odometry reported motion along the chain; b is its robust (Cauchy, IRLS) weighted fit.
+2. The heading's drift: the heading part of the discrepancies is linear in the time the
+   odometry reported motion along the chain (a yaw-rate bias b, a gyroscope's or a wheel's a
+   little larger than the other) and in the angle it turned (a yaw scale k: a wheelbase or a
+   gyroscope's scale a little off, which a U-turn shows and a constant turn hides in b); b and
+   k are their robust (Cauchy, IRLS) weighted fit, k with a weak prior (`YAW_SCALE_PRIOR`)
+   so that a drive whose turns keep pace with time stays well posed.
 3. The covariance scale s: with the bias removed, the median of each discrepancy's squared
    Mahalanobis norm under s * chain covariance + loop-edge covariance equals chi-square's
    median for 6 degrees of freedom (the loop edges' covariances are calibrated against the
@@ -22,8 +26,9 @@ edges weigh"). Calibrating both from the data solves the two at once:
    [`MIN_COVARIANCE_SCALE`, `MAX_COVARIANCE_SCALE`]. The median ignores wrong loop edges as
    long as they are fewer than half.
 
-Steps 2 and 3 alternate `ROUNDS` times. `calibrated_graph` then turns every moving odometry
-edge's heading by -b * dt, divides its information by s and integrates the vertices again.
+Steps 2 and 3 alternate `ROUNDS` times. `calibrated_graph` then turns every odometry edge's
+heading back by b * dt (dt while it moved) + k * its turn, divides its information by s and
+integrates the vertices again.
 A graph with fewer than `MIN_LOOP_EDGES` such loop edges is left as it is (b = 0, s = 1).
 """
 
@@ -54,20 +59,29 @@ CHI2_6_MEDIAN = 5.348  # scipy.stats.chi2.ppf(0.5, 6)
 # An odometry edge moved when it translated or turned more than this (m, rad): a wheel that
 # does not turn reports nothing, and its bias does not act.
 MOTION_EPSILON = 1e-5
+# A yaw scale's prior sigma (a fraction of the angle turned): wheelbases and gyroscopes are off
+# by a few percent at most; only a drive whose turns and time are collinear leans on it.
+YAW_SCALE_PRIOR = 0.05
+# The yaw scale is fitted only when it lowers the heading fit's Cauchy cost by more than this,
+# twice (a likelihood-ratio test, chi-square with 1 degree of freedom at 99 %): on a drive whose
+# turns keep pace with time it would only fit noise.
+YAW_SCALE_EVIDENCE = 6.635
 _TRANSLATION_MODELS = (DEPTH_PNP, ODOMETRY_PNP)
 _IRLS_STEPS = 20
 
 
 @dataclass(frozen=True)
 class OdometryCalibration:
-    """What the calibration found: the yaw-rate bias (rad/s, subtracted from the odometry's
-    heading while it moves) and the factor on the odometry covariance; `metric_loop_edges`
-    it had (with a translation), `off` when it was not asked for."""
+    """What the calibration found: the yaw-rate bias (rad/s while the odometry moves) and the
+    yaw scale (per radian turned), both taken out of the odometry's heading, and the factor on
+    its covariance; `metric_loop_edges` it had (with a translation), `off` when it was not
+    asked for."""
 
     yaw_rate_bias: float = 0.0
     covariance_scale: float = 1.0
     metric_loop_edges: int = 0
     off: bool = False
+    yaw_scale: float = 0.0
 
     @property
     def applied(self) -> bool:
@@ -83,7 +97,9 @@ class OdometryCalibration:
             )
         return (
             f"odometry calibrated on {self.metric_loop_edges} metric loop edges: yaw-rate bias "
-            f"{np.degrees(self.yaw_rate_bias):+.4f} deg/s, covariance x {self.covariance_scale:.3g}"
+            f"{np.degrees(self.yaw_rate_bias):+.4f} deg/s, "
+            + (f"yaw scale {100 * self.yaw_scale:+.2f} %" if self.yaw_scale else "no yaw scale")
+            + f", covariance x {self.covariance_scale:.3g}"
         )
 
     def to_json(self) -> dict[str, object]:
@@ -91,6 +107,7 @@ class OdometryCalibration:
             "applied": self.applied,
             "metric_loop_edges": self.metric_loop_edges,
             "yaw_rate_bias_deg_s": float(np.degrees(self.yaw_rate_bias)),
+            "yaw_scale": self.yaw_scale,  # 0 when not fitted (YAW_SCALE_EVIDENCE)
             "covariance_scale": self.covariance_scale,
         }
 
@@ -123,6 +140,7 @@ class _Odometry:
     translations: F64  # (N, 3)
     covariances: F64  # (N, 6, 6), ROS order
     motion: F64  # (N,): each edge's duration while the odometry moved, else 0 (s)
+    headings: F64  # (N,): each edge's turn about z (rad)
 
     @classmethod
     def of(cls, graph: PoseGraph) -> _Odometry:
@@ -136,12 +154,20 @@ class _Odometry:
         )
         motion = np.where(moved, np.diff(seconds), 0.0)
         covariances = np.asarray(np.linalg.inv(information), np.float64)
-        return cls(turns.as_matrix(), translations, covariances, motion)
+        headings = turns.as_rotvec()[:, 2]
+        return cls(turns.as_matrix(), translations, covariances, motion, headings)
 
-    def turned(self, bias: float) -> F64:
-        """The edges' rotations with the heading turned back by bias * motion."""
-        back = Rotation.from_rotvec(np.outer(-bias * self.motion, [0.0, 0.0, 1.0]))
+    def turned(self, heading: _Heading) -> F64:
+        """The edges' rotations with the heading's drift taken out."""
+        drift = heading.bias * self.motion + heading.scale * self.headings
+        back = Rotation.from_rotvec(np.outer(-drift, [0.0, 0.0, 1.0]))
         return np.asarray(back.as_matrix() @ self.turns, np.float64)
+
+
+@dataclass(frozen=True)
+class _Heading:
+    bias: float = 0.0  # rad/s while moving
+    scale: float = 0.0  # per radian turned
 
 
 @dataclass(frozen=True)
@@ -152,20 +178,22 @@ class _Chain:
     positions: F64  # (N, 3)
     world_covariance: F64  # (N, 6, 6): sum over edges before vertex k, moved to the first frame
     moving_time: F64  # (N,): seconds of motion before vertex k
+    turned: F64  # (N,): the odometry's turns about z before vertex k, as it states them (rad)
 
-    def between(self, a: int, c: int) -> tuple[F64, F64, F64, float]:
+    def between(self, a: int, c: int) -> tuple[F64, F64, F64, float, float]:
         """Vertex c in vertex a's frame (rotation, translation), its covariance at c, and
-        the signed time of motion from a to c."""
+        the signed time of motion and angle turned from a to c."""
         rotation = self.rotations[a].T @ self.rotations[c]
         translation = self.rotations[a].T @ (self.positions[c] - self.positions[a])
         inverse_c = adjoint(self.rotations[c].T, -self.rotations[c].T @ self.positions[c])
         spanned = self.world_covariance[max(a, c)] - self.world_covariance[min(a, c)]
         covariance = inverse_c @ spanned @ inverse_c.T
-        return rotation, translation, covariance, float(self.moving_time[c] - self.moving_time[a])
+        moving = float(self.moving_time[c] - self.moving_time[a])
+        return rotation, translation, covariance, moving, float(self.turned[c] - self.turned[a])
 
 
-def _integrate(odometry: _Odometry, bias: float) -> _Chain:
-    turns = odometry.turned(bias)
+def _integrate(odometry: _Odometry, heading: _Heading) -> _Chain:
+    turns = odometry.turned(heading)
     rotations = np.empty((len(turns) + 1, 3, 3))
     rotations[0] = np.eye(3)
     for k, turn in enumerate(turns):  # sequential, but 3x3: cheap
@@ -176,7 +204,8 @@ def _integrate(odometry: _Odometry, bias: float) -> _Chain:
     world = moved @ odometry.covariances @ np.swapaxes(moved, 1, 2)
     world = np.concatenate([np.zeros((1, 6, 6)), np.cumsum(world, axis=0)])
     moving = np.concatenate([[0.0], np.cumsum(odometry.motion)])
-    return _Chain(rotations, positions, world, moving)
+    turned = np.concatenate([[0.0], np.cumsum(odometry.headings)])
+    return _Chain(rotations, positions, world, moving, turned)
 
 
 @dataclass(frozen=True)
@@ -187,16 +216,17 @@ class _Discrepancies:
     chain_covariances: F64  # (L, 6, 6), the odometry as stated (scale 1)
     edge_covariances: F64  # (L, 6, 6)
     moving_times: F64  # (L,), signed
+    turned_angles: F64  # (L,), signed
 
 
 def _discrepancies(
-    graph: PoseGraph, loops: Sequence[Edge], odometry: _Odometry, bias: float
+    graph: PoseGraph, loops: Sequence[Edge], odometry: _Odometry, heading: _Heading
 ) -> _Discrepancies:
-    chain = _integrate(odometry, bias)
+    chain = _integrate(odometry, heading)
     index = {int(v): k for k, v in enumerate(graph.vertex_ids)}
-    residuals, covariances, moving = [], [], []
+    residuals, covariances, moving, turned = [], [], [], []
     for loop in loops:
-        rotation, translation, covariance, time = chain.between(
+        rotation, translation, covariance, time, angle = chain.between(
             index[loop.from_id], index[loop.to_id]
         )
         measured = Rotation.from_quat(loop.quaternion_xyzw).as_matrix()
@@ -204,25 +234,57 @@ def _discrepancies(
         residuals.append(np.concatenate([rotation.T @ (loop.translation - translation), turn]))
         covariances.append(covariance)
         moving.append(time)
+        turned.append(angle)
     information = np.array([loop.information for loop in loops], np.float64)
     return _Discrepancies(
         np.asarray(residuals, np.float64).reshape(-1, 6),
         np.asarray(covariances, np.float64).reshape(-1, 6, 6),
         np.asarray(np.linalg.inv(information), np.float64),
         np.asarray(moving, np.float64),
+        np.asarray(turned, np.float64),
     )
 
 
-def _bias_step(found: _Discrepancies, scale: float) -> float:
-    """The heading residuals' robust slope against the time of motion (rad/s)."""
-    heading, times = found.residuals[:, 5], found.moving_times
+def _heading_step(
+    found: _Discrepancies, scale: float, taken: _Heading, yaw_scale: bool
+) -> tuple[_Heading, float]:
+    """The heading residuals' robust fit against the time of motion (and with `yaw_scale`
+    the angle turned), the drift `taken` out already: the step to take out too, and the
+    fit's Cauchy cost (sum of log(1 + r^2), r whitened). The yaw scale's weak prior is on the
+    whole, taken.scale - step."""
+    heading = found.residuals[:, 5]
+    regressors = np.column_stack([found.moving_times, found.turned_angles])[:, : 1 + yaw_scale]
     variances = scale * found.chain_covariances[:, 5, 5] + found.edge_covariances[:, 5, 5]
-    slope = 0.0
+    prior = np.diag([0.0, 1.0 / YAW_SCALE_PRIOR**2])[: 1 + yaw_scale, : 1 + yaw_scale]
+    pull = prior @ np.array([0.0, taken.scale])[: 1 + yaw_scale]
+    slopes = np.zeros(1 + yaw_scale)
     for _ in range(_IRLS_STEPS):
-        whitened = (heading - slope * times) / np.sqrt(variances)
+        whitened = (heading - regressors @ slopes) / np.sqrt(variances)
         weights = 1.0 / (1.0 + whitened**2) / variances
-        slope = float(np.sum(weights * times * heading) / max(np.sum(weights * times**2), 1e-300))
-    return slope
+        normal = regressors.T @ (weights[:, None] * regressors) + prior
+        normal[0, 0] += 1e-12 * (1.0 + normal[0, 0])  # no motion at all: no bias
+        slopes = np.linalg.solve(normal, regressors.T @ (weights * heading) + pull)
+    whitened = (heading - regressors @ slopes) / np.sqrt(variances)
+    step = _Heading(float(slopes[0]), float(slopes[1]) if yaw_scale else 0.0)
+    return step, float(np.sum(np.log1p(whitened**2)))
+
+
+def _rounds(
+    graph: PoseGraph,
+    loops: Sequence[Edge],
+    odometry: _Odometry,
+    start: tuple[_Heading, float],
+    yaw_scale: bool,
+) -> tuple[_Heading, float]:
+    """`ROUNDS` of the heading's fit and the covariance scale's, from `start`."""
+    heading, scale = start
+    for _ in range(ROUNDS):
+        step, _ = _heading_step(
+            _discrepancies(graph, loops, odometry, heading), scale, heading, yaw_scale
+        )
+        heading = _Heading(heading.bias - step.bias, heading.scale - step.scale)
+        scale = _scale_step(_discrepancies(graph, loops, odometry, heading))
+    return heading, scale
 
 
 def _median_excess(found: _Discrepancies, log_scale: float) -> float:
@@ -249,17 +311,18 @@ def calibrate_odometry(graph: PoseGraph) -> OdometryCalibration:
     if len(loops) < MIN_LOOP_EDGES or not graph.odometry_edges:
         return OdometryCalibration(metric_loop_edges=len(loops))
     odometry = _Odometry.of(graph)
-    bias, scale = 0.0, 1.0
-    for _ in range(ROUNDS):
-        bias -= _bias_step(_discrepancies(graph, loops, odometry, bias), scale)
-        scale = _scale_step(_discrepancies(graph, loops, odometry, bias))
-    return OdometryCalibration(bias, scale, len(loops))
+    heading, scale = _rounds(graph, loops, odometry, (_Heading(), 1.0), yaw_scale=False)
+    found = _discrepancies(graph, loops, odometry, heading)
+    costs = [_heading_step(found, scale, heading, with_scale)[1] for with_scale in (False, True)]
+    if 2 * (costs[0] - costs[1]) > YAW_SCALE_EVIDENCE:  # the turns explain what time does not
+        heading, scale = _rounds(graph, loops, odometry, (heading, scale), yaw_scale=True)
+    return OdometryCalibration(heading.bias, scale, len(loops), yaw_scale=heading.scale)
 
 
 def chain_covariances(graph: PoseGraph, loops: Sequence[Edge]) -> F64:
     """(L, 6, 6), ROS order: the covariance of the odometry chain between each loop edge's two
     vertices, at the loop edge's `to_id` end, with `graph`'s odometry edges as they are."""
-    chain = _integrate(_Odometry.of(graph), 0.0)
+    chain = _integrate(_Odometry.of(graph), _Heading())
     index = {int(v): k for k, v in enumerate(graph.vertex_ids)}
     found = [chain.between(index[e.from_id], index[e.to_id])[2] for e in loops]
     return np.asarray(found, np.float64).reshape(-1, 6, 6)
@@ -271,7 +334,8 @@ def calibrated_graph(graph: PoseGraph, calibration: OdometryCalibration) -> Pose
     if not calibration.applied:
         return graph
     odometry = _Odometry.of(graph)
-    quaternions = Rotation.from_matrix(odometry.turned(calibration.yaw_rate_bias)).as_quat()
+    heading = _Heading(calibration.yaw_rate_bias, calibration.yaw_scale)
+    quaternions = Rotation.from_matrix(odometry.turned(heading)).as_quat()
     quaternions *= np.where(quaternions[:, 3:] < 0, -1.0, 1.0)  # w >= 0, as relative_pose
     edges = [
         dataclasses.replace(
@@ -281,7 +345,7 @@ def calibrated_graph(graph: PoseGraph, calibration: OdometryCalibration) -> Pose
         )
         for edge, quaternion in zip(graph.odometry_edges, quaternions, strict=True)
     ]
-    chain = _integrate(odometry, calibration.yaw_rate_bias)
+    chain = _integrate(odometry, heading)
     first = Rotation.from_quat(graph.poses.quaternions_xyzw[0]).as_matrix()
     positions = graph.poses.positions[0] + np.einsum("ij,nj->ni", first, chain.positions)
     rotations = np.einsum("ij,njk->nik", first, chain.rotations)
