@@ -1,4 +1,4 @@
-"""Odometry self-calibration from the metric loop edges: a yaw-rate bias and a covariance scale.
+"""Odometry self-calibration from the metric loop edges: heading drift and a covariance scale.
 
 Wheel odometry drifts by a bias, not by white noise: a wheel a little larger than the other
 turns the robot's heading a fraction of a degree a second, the same way the whole drive. The
@@ -17,8 +17,9 @@ edges weigh"). Calibrating both from the data solves the two at once:
    odometry reported motion along the chain (a yaw-rate bias b, a gyroscope's or a wheel's a
    little larger than the other) and in the angle it turned (a yaw scale k: a wheelbase or a
    gyroscope's scale a little off, which a U-turn shows and a constant turn hides in b); b and
-   k are their robust (Cauchy, IRLS) weighted fit, k with a weak prior (`YAW_SCALE_PRIOR`)
-   so that a drive whose turns keep pace with time stays well posed.
+   k are their robust (Cauchy, IRLS) weighted fit, k with a weak prior (`YAW_SCALE_PRIOR`),
+   and k only when it earns its place: on a drive whose turns keep pace with time the two
+   regressors are one, and k would fit noise.
 3. The covariance scale s: with the bias removed, the median of each discrepancy's squared
    Mahalanobis norm under s * chain covariance + loop-edge covariance equals chi-square's
    median for 6 degrees of freedom (the loop edges' covariances are calibrated against the
@@ -26,10 +27,11 @@ edges weigh"). Calibrating both from the data solves the two at once:
    [`MIN_COVARIANCE_SCALE`, `MAX_COVARIANCE_SCALE`]. The median ignores wrong loop edges as
    long as they are fewer than half.
 
-Steps 2 and 3 alternate `ROUNDS` times. `calibrated_graph` then turns every odometry edge's
-heading back by b * dt (dt while it moved) + k * its turn, divides its information by s and
-integrates the vertices again.
-A graph with fewer than `MIN_LOOP_EDGES` such loop edges is left as it is (b = 0, s = 1).
+Steps 2 and 3 alternate `ROUNDS` times with the bias alone, then `ROUNDS` more with the yaw
+scale if a likelihood-ratio test takes it (`YAW_SCALE_EVIDENCE`). `calibrated_graph` then
+turns every odometry edge's heading back by b * dt (dt while it moved) + k * its turn,
+divides its information by s and integrates the vertices again. A graph with fewer than
+`MIN_LOOP_EDGES` such loop edges is left as it is (b = k = 0, s = 1).
 """
 
 from __future__ import annotations
@@ -306,7 +308,8 @@ def _scale_step(found: _Discrepancies) -> float:
 
 
 def calibrate_odometry(graph: PoseGraph) -> OdometryCalibration:
-    """The yaw-rate bias and covariance scale of `graph`'s odometry (module docstring)."""
+    """The yaw-rate bias, yaw scale (0 unless `YAW_SCALE_EVIDENCE` is met) and covariance
+    scale of `graph`'s odometry (module docstring)."""
     loops = [e for e in graph.loop_edges if e.model in _TRANSLATION_MODELS]
     if len(loops) < MIN_LOOP_EDGES or not graph.odometry_edges:
         return OdometryCalibration(metric_loop_edges=len(loops))
