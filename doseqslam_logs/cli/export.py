@@ -51,8 +51,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     parser.add_argument(
         "--calibrate-odometry",
         action="store_true",
-        help="g2o: odometry edges calibrated from the metric loop edges (a yaw-rate bias and a "
-        "covariance factor), as optimize does by default; default: /odom as stated",
+        help="g2o: odometry edges calibrated from the metric loop edges (heading drift: a "
+        "yaw-rate bias, and a yaw scale when the turns show one; a covariance factor), as "
+        "optimize does by default; default: /odom as stated",
     )
     add_pose_graph_options(parser)
     parser.set_defaults(run=run)

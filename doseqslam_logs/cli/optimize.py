@@ -62,7 +62,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     parser.add_argument(
         "--no-odometry-calibration",
         action="store_true",
-        help="take the odometry's covariance as stated, with no yaw-rate bias (default: both "
+        help="take the odometry as stated (default: its heading drift and covariance factor "
         "calibrated from the metric loop edges; docs/export.md)",
     )
     parser.add_argument("--json", action="store_true", help="the summary as one JSON object")

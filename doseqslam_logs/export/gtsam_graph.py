@@ -14,11 +14,13 @@ Our information matrices are in ROS order (x, y, z, rot x, rot y, rot z); GTSAM'
 puts the rotation first (rot x, rot y, rot z, x, y, z), so the blocks are swapped
 (`gtsam_information`), as `gtsam.readG2o` does for a g2o file.
 
-`optimize_pose_graph(graph)` runs Levenberg-Marquardt, then the outlier check: a loop edge
-whose squared Mahalanobis error (with its Gaussian information, no kernel) at the optimum
-exceeds a chi-square bound (6 degrees of freedom, 99 %) is dropped and the graph optimized
-again from the odometry, until every remaining loop edge passes. A kernel alone only weakens
-a wrong loop; the check removes it.
+`optimize_pose_graph(graph)` first calibrates the odometry from the metric loop edges
+(`odometry_calibration`: heading drift and a covariance factor), then runs Levenberg-Marquardt,
+then the outlier check: a loop edge whose squared Mahalanobis error (with its Gaussian
+information, no kernel; plus the calibrated odometry's between its two vertices) at the
+optimum exceeds a chi-square bound (6 degrees of freedom, 99 %) is dropped and the graph
+optimized again from the odometry, until every remaining loop edge passes. A kernel alone
+only weakens a wrong loop; the check removes it.
 
 GTSAM is the optional extra `gtsam` and is imported only when a function here needs it.
 """
@@ -91,8 +93,8 @@ class OptimizeOptions:
     outlier_check: bool = True  # drop loop edges above outlier_bound and optimize again
     outlier_bound: float = DEFAULT_OUTLIER_BOUND  # on a loop edge's squared Mahalanobis error
     max_iterations: int = 100  # Levenberg-Marquardt, per round
-    # Yaw-rate bias and covariance scale of the odometry from the metric loop edges
-    # (odometry_calibration.py); off: the /odom covariance as stated, no bias.
+    # The odometry's heading drift and covariance factor from the metric loop edges
+    # (odometry_calibration.py); off: the odometry as /odom states it.
     calibrate_odometry: bool = True
 
     def __post_init__(self) -> None:
