@@ -32,19 +32,19 @@ def generate_drifting_drive(folder: Path, seed: int = 29, depth: bool = False) -
     """A drive like drive_loops but another seed (29: odometry 4.4 m off at the end); with
     `depth`, an aligned depth topic too (make_sample_logs --depth), named drift{seed}depth."""
     name = f"drift{seed}depth" if depth else f"drift{seed}"
+    return generate_drive(folder, name, seed, depth=depth)
+
+
+def generate_drive(
+    folder: Path, name: str, seed: int, route: gen.Route = "loops", **options: Any
+) -> Path:
+    """A drive of `route` at the samples' image settings (256x192 at 2 Hz, JPEG quality 70),
+    120 s unless `options` (make_sample_logs.Config fields) say otherwise; its ROS 2 MCAP."""
+    settings: dict[str, Any] = {"duration": 120.0, "rate": 2.0, **options}
     config = gen.Config(
-        name=name,
-        seed=seed,
-        route="loops",
-        duration=120.0,
-        rate=2.0,
-        width=256,
-        height=192,
-        formats=("ros2mcap",),
-        quality=70,
-        noise_sigma=1.5,
-        depth=depth,
-    )
+        name=name, seed=seed, route=route, width=256, height=192, formats=("ros2mcap",),
+        quality=70, noise_sigma=1.5, **settings,
+    )  # fmt: skip
     gen.generate(config, folder, progress=False)
     return folder / f"{name}.ros2.mcap"
 

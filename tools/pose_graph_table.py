@@ -233,17 +233,6 @@ OTHER_DRIVES: tuple[tuple[int, gen.Route, dict[str, float | bool]], ...] = (
 )
 
 
-def generated_drive(folder: Path, seed: int, route: gen.Route, **options: float | bool) -> Path:
-    """A drive made like the drifting drives (256x192 at 2 Hz, 120 s unless said)."""
-    settings: dict[str, object] = {"duration": 120.0, **options}
-    config = gen.Config(
-        name=f"{route}{seed}", seed=seed, route=route, rate=2.0, width=256, height=192,
-        formats=("ros2mcap",), quality=70, noise_sigma=1.5, **settings,  # type: ignore[arg-type]
-    )  # fmt: skip
-    gen.generate(config, folder, progress=False)
-    return folder / f"{route}{seed}.ros2.mcap"
-
-
 def calibration_row(name: str, annotated: Path) -> str:
     """ATE of the metric and oracle graphs, odometry as stated and calibrated."""
     _, metric, truth = metric_graph_and_truth(annotated)
@@ -279,7 +268,9 @@ def calibration_table() -> None:
         drives = [(name, check.generate_drifting_drive(root, s)) for name, s in seeds]
         for seed, route, options in OTHER_DRIVES:
             label = " ".join([f"seed {seed} {route}", *(f"{k}={v}" for k, v in options.items())])
-            drives.append((label, generated_drive(root, seed, route, **options)))
+            drives.append(
+                (label, check.generate_drive(root, f"{route}{seed}", seed, route, **options))
+            )
         for name, annotated in annotated_drives(root, drives + COMMITTED):
             print(calibration_row(name, annotated), flush=True)
 
