@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -129,6 +130,26 @@ LOOP_SIGMAS = np.array([0.05, 0.05, 0.05, *np.radians([0.5, 0.5, 0.5])])
 ODOMETRY_SIGMAS = np.array([0.005, 0.005, 0.005, 0.0005, 0.0005, 0.0005])
 
 
+def _measured(
+    true_steps: list[tuple], rng: np.random.Generator, heading_error: Callable[[float], float]
+) -> tuple[list[tuple], list[tuple]]:
+    """The odometry of `true_steps`: each moving step's heading off by heading_error(its true
+    turn about z) plus white noise (ODOMETRY_SIGMAS); a still step reports nothing. And the
+    true poses the steps integrate to, from the origin."""
+    odometry = []
+    for relative in true_steps:
+        moving = bool(relative[1].any())
+        angle = Rotation.from_matrix(relative[0]).as_rotvec()[2]
+        noise = rng.normal(0, ODOMETRY_SIGMAS) * moving
+        turn = Rotation.from_rotvec([0, 0, heading_error(angle) * moving]).as_matrix()
+        turn = turn @ Rotation.from_rotvec(noise[3:]).as_matrix()
+        odometry.append((turn @ relative[0], relative[1] + noise[:3]))
+    truth = [(np.eye(3), np.zeros(3))]
+    for relative in true_steps:
+        truth.append(_compose(truth[-1], relative))
+    return odometry, truth
+
+
 def _circle_drive(
     bias_rad_s: float, parked_s: float, wrong: int, stated: float = 1.0, seed: int = 0
 ) -> tuple:
@@ -145,16 +166,7 @@ def _circle_drive(
             np.array([SPEED_MPS * dt, 0.0, 0.0]))  # fmt: skip
     still = (np.eye(3), np.zeros(3))
     true_steps = [step] * lap + [still] * parked + [step] * lap
-    odometry = []
-    for relative in true_steps:
-        moving = relative is step
-        turn = Rotation.from_rotvec([0, 0, bias_rad_s * dt * moving]).as_matrix()
-        noise = rng.normal(0, ODOMETRY_SIGMAS) * moving
-        turn = turn @ Rotation.from_rotvec(noise[3:]).as_matrix()
-        odometry.append((turn @ relative[0], relative[1] + noise[:3]))
-    truth = [(np.eye(3), np.zeros(3))]
-    for relative in true_steps:
-        truth.append(_compose(truth[-1], relative))
+    odometry, truth = _measured(true_steps, rng, lambda turn: bias_rad_s * dt)
     information = np.diag(1.0 / LOOP_SIGMAS**2)
     loops = []
     for k in range(lap + parked + 5, 2 * lap + parked - 5, 4):
@@ -227,16 +239,7 @@ def _out_and_back_drive(yaw_scale: float, bias_rad_s: float, seed: int = 1) -> P
     straight = (np.eye(3), np.array([SPEED_MPS * dt, 0.0, 0.0]))
     u_turn = (Rotation.from_rotvec([0, 0, math.pi / 10]).as_matrix(), np.array([0.5, 0.0, 0.0]))
     true_steps = [straight] * leg + [u_turn] * 10 + [straight] * leg
-    odometry = []
-    for relative in true_steps:
-        angle = Rotation.from_matrix(relative[0]).as_rotvec()[2]
-        noise = rng.normal(0, ODOMETRY_SIGMAS)
-        turn = Rotation.from_rotvec([0, 0, yaw_scale * angle + bias_rad_s * dt]).as_matrix()
-        turn = turn @ Rotation.from_rotvec(noise[3:]).as_matrix()
-        odometry.append((turn @ relative[0], relative[1] + noise[:3]))
-    truth = [(np.eye(3), np.zeros(3))]
-    for relative in true_steps:
-        truth.append(_compose(truth[-1], relative))
+    odometry, truth = _measured(true_steps, rng, lambda turn: yaw_scale * turn + bias_rad_s * dt)
     positions = np.array([t[1] for t in truth])
     information = np.diag(1.0 / LOOP_SIGMAS**2)
     loops = []
