@@ -24,6 +24,9 @@ from doseqslam_logs.verification.geometry import side_of_query
 from doseqslam_logs.verification.stage import WALK_RADII, Verifier
 
 R = DEFAULT_VERIFICATION.refine_radius
+# The stand-in geometry passes every frame of `passing`, those between match and query too, as a
+# still camera's would: the motion rule (tests/test_motion_rule.py) is left out here.
+PARAMS = DEFAULT_VERIFICATION.replace(motion_rule=False)
 QUERY, MATCH, DATABASE = 400, 100, 380
 
 
@@ -60,7 +63,7 @@ def indexed_features(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def check(monkeypatch: pytest.MonkeyPatch, place: int, passing: range) -> stage.PairCheck:
     monkeypatch.setattr(stage, "verify_pair", geometry(place, passing))
-    verifier = Verifier(DEFAULT_VERIFICATION, frames)
+    verifier = Verifier(PARAMS, frames)
     decision = sequence_decision(1, 10**9, 1, QUERY, match=MATCH, database_size=DATABASE)
     (result,) = verifier.verify(decision).checks
     return result

@@ -606,9 +606,11 @@ class DriveSpec:
 
     duration: float
     rate: float
-    parked: float = 0.0  # seconds parked in the middle of the drive
+    parked: float = 0.0  # seconds parked in the middle of the drive (each stop's, with `stops`)
     variable_rate: bool = False
     drop_frames: int = 0
+    stops: int = 1  # parking stops of `parked` seconds each, evenly spread over the drive
+    lighting: float = 1.0  # strength of the exposure and gamma drift (1: the samples')
 
 
 @dataclass
@@ -705,9 +707,13 @@ def _plan(
     stops = [_Stop(p, TURN_S) for p in leg.turn_points(float(sigma[-1]))]
     knots_t, knots_s, spans = _time_knots(sigma, _brake(base_v, sigma, stops), stops)
     if spec.parked > 0:
-        # Park where the drive would be at (duration - parked) / 2: the stop is centred.
-        where = float(np.interp((spec.duration - spec.parked) / 2, knots_t, knots_s))
-        stops.append(_Stop(where, spec.parked, parking=True))
+        # Stop k of n where the drive would be at (k + 1) / (n + 1) of its moving time: one
+        # stop is centred.
+        moving = spec.duration - spec.stops * spec.parked
+        for k in range(spec.stops):
+            at = moving / 2 if spec.stops == 1 else moving * (k + 1) / (spec.stops + 1)
+            where = float(np.interp(at, knots_t, knots_s))
+            stops.append(_Stop(where, spec.parked, parking=True))
         knots_t, knots_s, spans = _time_knots(sigma, _brake(base_v, sigma, stops), stops)
     return knots_t, knots_s, spans
 
@@ -791,10 +797,11 @@ def _frame_times(spec: DriveSpec, rng: np.random.Generator) -> tuple[F64, list[i
     return np.delete(nominal, dropped), dropped, len(nominal)
 
 
-def _lighting(t: F64, rng: np.random.Generator) -> F64:
-    """Per-frame (gain, gamma, sun azimuth, diffuse): exposure and a wandering sun."""
-    gain = np.exp(0.25 * SmoothNoise(rng, 20.0, 120.0)(t))
-    gamma = (1 / 1.8) * np.exp(0.12 * SmoothNoise(rng, 30.0, 150.0)(t))
+def _lighting(t: F64, rng: np.random.Generator, strength: float = 1.0) -> F64:
+    """Per-frame (gain, gamma, sun azimuth, diffuse): exposure and a wandering sun; `strength`
+    scales the exposure and gamma drift."""
+    gain = np.exp((0.25 * strength) * SmoothNoise(rng, 20.0, 120.0)(t))
+    gamma = (1 / 1.8) * np.exp((0.12 * strength) * SmoothNoise(rng, 30.0, 150.0)(t))
     sun = rng.uniform(0, 2 * np.pi) + np.radians(0.6) * t + 0.3 * SmoothNoise(rng, 40.0, 200.0)(t)
     diffuse = 0.35 + 0.18 * SmoothNoise(rng, 15.0, 90.0)(t)
     return np.column_stack([gain, gamma, sun, diffuse])
@@ -821,7 +828,7 @@ def simulate_drive(path: Path2D, spec: DriveSpec, seed: int) -> Drive:
         y=y,
         yaw=_wrap(yaw),
         odom=np.column_stack([odom[:, :2], _wrap(odom[:, 2]), odom[:, 3:]]),
-        light=_lighting(times, rng),
+        light=_lighting(times, rng, spec.lighting),
         parked_span_s=parked,
         dropped=dropped,
         nominal_frames=nominal,
@@ -1120,16 +1127,24 @@ class Config:
     mcap_compression: clw.McapCompression = "zstd"
     depth: bool = False  # an aligned depth topic (see the module docstring)
     depth_encoding: DepthEncoding = "32FC1"
+    stops: int = 1  # with parked > 0: this many stops of `parked` seconds
+    lighting: float = 1.0  # strength of the exposure and gamma drift
 
     def lap(self) -> float:
         if self.lap_length is not None:
             return max(self.lap_length, MIN_LAP_M[self.route])
-        moving = max(self.duration - self.parked, 1.0)
+        moving = max(self.duration - self.stops * self.parked, 1.0)
         return float(np.clip(SPEED_MPS * moving / 3.0, MIN_LAP_M[self.route], 600.0))
 
     def drive_spec(self) -> DriveSpec:
         return DriveSpec(
-            self.duration, self.rate, self.parked, self.variable_rate, self.drop_frames
+            self.duration,
+            self.rate,
+            self.parked,
+            self.variable_rate,
+            self.drop_frames,
+            self.stops,
+            self.lighting,
         )
 
     def render_spec(self) -> RenderSpec:
@@ -1141,6 +1156,9 @@ class Config:
         values = asdict(self)
         if not self.depth:
             del values["depth"], values["depth_encoding"]
+        for name, default in (("stops", 1), ("lighting", 1.0)):  # likewise
+            if values[name] == default:
+                del values[name]
         return values
 
 
@@ -1651,6 +1669,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--mono", action="store_true", help="grey images (mono8 / grey JPEG)")
     p.add_argument("--noise", type=float, default=2.0, help="sensor noise sigma, grey levels")
     p.add_argument("--parked", type=float, default=0.0, help="seconds parked mid-drive")
+    p.add_argument("--stops", type=int, default=1, help="with --parked: stops of that length")
+    p.add_argument(
+        "--lighting", type=float, default=1.0, help="exposure and gamma drift (1: the samples')"
+    )
     p.add_argument("--variable-rate", action="store_true")
     p.add_argument("--drop-frames", type=int, default=0, metavar="K")
     p.add_argument("--lap-length", type=float, help="metres of route per lap")
@@ -1682,6 +1704,8 @@ def _config(args: argparse.Namespace) -> Config:
         color=not args.mono,
         noise_sigma=args.noise,
         parked=args.parked,
+        stops=args.stops,
+        lighting=args.lighting,
         variable_rate=args.variable_rate,
         drop_frames=args.drop_frames,
         lap_length=args.lap_length,

@@ -184,7 +184,8 @@ def summary_line(result: AnnotateResult) -> str:
         stats = verification.stats
         pose = f"essential matrix, intrinsics from {verification.intrinsics_source}"
         model = pose if verification.intrinsics else "fundamental matrix, no intrinsics"
-        checked = verification_summary(stats, verification.wall_s, model)
+        motion = verification.motion_summary
+        checked = verification_summary(stats, verification.wall_s, model, motion)
         notes.insert(0, f"verified {stats.candidates} candidate pairs: {checked}")
         if verification.metric is not None:
             metric = verification.metric.stats
@@ -220,6 +221,25 @@ def result_json(result: AnnotateResult) -> dict[str, object]:
         "unattributed_messages": result.unattributed,
         "recovered": None if result.recovery is None else result.recovery.as_metadata(),
         "features": None if result.health is None else result.health.to_json(),
+        "verification": _verification_json(result),
+    }
+
+
+def _verification_json(result: AnnotateResult) -> dict[str, object] | None:
+    """What the verification stage decided (None when it was off)."""
+    verification = result.verification
+    if verification is None:
+        return None
+    stats = verification.stats
+    return {
+        "candidates": stats.candidates,
+        "accepted": stats.accepted,
+        "from_alternatives": stats.from_alternatives,
+        "rejected_stationary": stats.stationary,
+        "motion_evidence": verification.motion_summary,
+        "skipped": stats.skipped,
+        "frame_pairs": stats.pairs,
+        "intrinsics_source": verification.intrinsics_source,
     }
 
 

@@ -65,7 +65,7 @@ class FolderVerification:
             if self.intrinsics
             else "fundamental matrix, no intrinsics"
         )
-        counts = verification_summary(self.stats, self.wall_s, pose)
+        counts = verification_summary(self.stats, self.wall_s, pose, "images")
         verified = f"{self.stats.candidates} candidate pairs verified"
         return f"verification {self.params.hash}: {verified}, {counts}"
 

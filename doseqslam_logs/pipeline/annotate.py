@@ -68,7 +68,7 @@ from .decode import (
 from .feature_health import FeatureHealth, check_feasibility, run_feature_health
 from .feature_spill import FeatureSpill, feature_spill_for
 from .frame_spill import spilled_frame_store
-from .metric_edges import MetricEdges, metric_edges
+from .metric_edges import MetricEdges, OdometryFrames, metric_edges, read_odometry
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
@@ -159,6 +159,16 @@ class Verification:
     stats: VerificationStats  # seconds summed over the verification threads
     wall_s: float = 0.0  # wall time of the whole stage
     metric: MetricEdges | None = None  # the accepted pairs' metric poses (the metric stage)
+    # The motion rule's evidence: "odometry TOPIC", or "images" without a pose topic.
+    motion_evidence: str = "images"
+
+    @property
+    def motion_summary(self) -> str:
+        """The evidence as the summary names it ("odometry /odom", "images", or both when
+        the poses did not cover every pair)."""
+        if self.motion_evidence == "images" or not self.stats.motion_by_images:
+            return self.motion_evidence
+        return f"{self.motion_evidence}; images where it has no pose"
 
     def recorded_in(self, metadata: RunMetadata) -> RunMetadata:
         """The run's metadata with the stage's parameters and outcome; the run reports the
@@ -184,9 +194,11 @@ def verify_decisions(
     frame_times: FrameTimes,
     options: AnnotateOptions,
     features: FeatureSpill | None = None,
+    odometry: OdometryFrames | None = None,
 ) -> Verification | None:
     """The verification stage over a finished replay (None when it is off); `features`: the
-    frames' features the replay extracted, if it did."""
+    frames' features the replay extracted, if it did; `odometry`: the camera's poses at the
+    frames, for the motion rule (None: it looks at the images)."""
     if options.verification is None:
         return None
     intrinsics, origin = options.intrinsics, "--intrinsics"
@@ -203,10 +215,14 @@ def verify_decisions(
         options.workers,
         options.verification_cache_bytes,
         None if features is None else features.get,
+        None if odometry is None else odometry.camera_path(),
     )
     verified = {item.decision.sequence_id: item for item in checked}
     wall_s = time.perf_counter() - start
-    return Verification(options.verification, intrinsics, origin, verified, stats, wall_s)
+    evidence = "images" if odometry is None else f"odometry {odometry.topic}"
+    return Verification(
+        options.verification, intrinsics, origin, verified, stats, wall_s, motion_evidence=evidence
+    )
 
 
 def visualization_of(annotations: Annotations, read_path: Path, topic: str) -> Visualization:
@@ -548,9 +564,15 @@ def _annotate(
         count_missing(counts, promise, log, topic)
         refuse_no_frame(counts, recovery, log, topic, _window(options))
         frame_times = recorder.frame_times()
+        odometry = None
         if options.verification is not None:
             _announce(stage, "verify")
-        verification = verify_decisions(read_path, topic, result, frame_times, options, features)
+            odometry = read_odometry(
+                read_path, frame_times, options.time_source, options.odometry_topic
+            )
+        verification = verify_decisions(
+            read_path, topic, result, frame_times, options, features, odometry
+        )
     if verification is not None:
         _announce(stage, "metric")
         verification.metric = metric_edges(
@@ -564,6 +586,7 @@ def _annotate(
             odometry_topic=options.odometry_topic,
             max_pixels=options.max_pixels,
             workers=options.workers,
+            odometry=odometry,
         )
     sha256 = waiting.result(digest)
     metadata = run_metadata(

@@ -45,7 +45,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Final
+from typing import Final, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -66,6 +66,7 @@ from ..verification.metric_pose import (
     OdometryNeighbour,
     metric_pose,
 )
+from ..verification.motion import CameraPath
 from ..verification.params import VerificationParameters
 from ..verification.stage import FeatureCache, VerifiedDecision, query_stride
 from .reread import LogFrameReader
@@ -141,6 +142,10 @@ class OdometryFrames:
     positions: F64
     valid: npt.NDArray[np.bool_]
     times_ns: npt.NDArray[np.int64]
+
+    def camera_path(self) -> CameraPath:
+        """The positions at the frames, for verification's motion rule."""
+        return CameraPath(self.topic, self.positions, self.valid)
 
     def relative(self, match: int, neighbour: int) -> tuple[Rotation, F64]:
         """(R, t) with X_neighbour = R X_match + t (the core's `OdometryNeighbour`)."""
@@ -345,9 +350,11 @@ def metric_edges(
     interval_s: float = METRIC_INTERVAL_S,
     progress: Callable[[int], None] | None = None,
     workers: int = 2,
+    odometry: OdometryFrames | Literal["read"] | None = "read",
 ) -> MetricEdges:
     """The metric pose of every accepted pair (module docstring), fitted on `workers` threads.
-    `odometry_topic`: None the first Odometry topic, "" none.
+    `odometry_topic`: None the first Odometry topic, "" none; `odometry`: the odometry at the
+    frames when the run has read it already (`read_odometry`), else "read" here.
 
     Raises SourceError when the log cannot be read again.
     """
@@ -360,7 +367,8 @@ def metric_edges(
     chosen, not_fitted = thinned(pairs, interval_s)
     poses = {p.key: not_fitted for p in pairs}
     stats.fitted = len(chosen)
-    odometry = _odometry(read_path, frame_times, time_source, odometry_topic)
+    if odometry == "read":
+        odometry = read_odometry(read_path, frame_times, time_source, odometry_topic)
     stats.odometry_topic = "" if odometry is None else odometry.topic
     params = dataclasses.replace(verification, feature_detector=METRIC_FEATURES)
     with LogFrameReader(read_path, image_topic, frame_times, max_pixels=max_pixels) as reader:
@@ -382,7 +390,7 @@ def _finished(edges: MetricEdges, start: float) -> MetricEdges:
     return edges
 
 
-def _odometry(
+def read_odometry(
     read_path: Path, frame_times: FrameTimes, time_source: str, asked: str | None
 ) -> OdometryFrames | None:
     """The odometry at the frames: `asked` (raises SourceError when it cannot be read), else the

@@ -75,6 +75,13 @@ class VerificationParameters:
     # trajectory (geometry.bracketed_match); the refined match is then the nearer of those two.
     max_rotation_deg: float = 10.0
     bracket: bool = True
+    # The motion rule (verification.motion): a pair is reported only if the camera left the
+    # match's place and came back; else it is rejected "stationary". With a pose topic, left
+    # means at least leave_distance_m from the match's position at some frame between; without
+    # one, at least half of leave_samples frames between them do not see the query's place.
+    motion_rule: bool = True
+    leave_distance_m: float = 2.0
+    leave_samples: int = 6
 
     def __post_init__(self) -> None:
         reject_non_finite(self)
@@ -107,6 +114,10 @@ class VerificationParameters:
             raise ParameterError(
                 f"max_rotation_deg must be in (0, 180], got {self.max_rotation_deg}"
             )
+        if not self.leave_distance_m > 0:
+            raise ParameterError(f"leave_distance_m must be positive, got {self.leave_distance_m}")
+        if self.leave_samples < 1:
+            raise ParameterError(f"leave_samples must be >= 1, got {self.leave_samples}")
         if not self.query_interval_s >= 0:
             raise ParameterError(f"query_interval_s must be >= 0, got {self.query_interval_s}")
 

@@ -104,6 +104,7 @@ from .geometry import (
     side_of_query,
     verify_pair,
 )
+from .motion import STATIONARY, CameraPath, frames_between, left_by_images
 from .params import VerificationParameters
 
 # Sorted frame indices in, (index, gray frame) out for each of them.
@@ -218,6 +219,8 @@ class VerificationStats:
     continued: int = 0  # of the accepted: where the previous sequence's place went on
     skipped: int = 0  # candidates left unchecked (counted in `candidates`)
     given_up: int = 0  # of the skipped: after their sequence's two hopeless checks
+    stationary: int = 0  # candidates rejected by the motion rule (verification.motion)
+    motion_by_images: int = 0  # motion-rule decisions taken on image evidence (no poses)
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
     frames_loaded: int = 0  # frames decoded for features (re-reads of evicted frames included)
     frames_stored: int = 0  # frames whose features came from `Verifier.stored_features`
@@ -296,6 +299,8 @@ class Verifier:
     # Features extracted earlier (by the replay: pipeline.feature_spill), by frame index; a
     # frame it lacks (None) is loaded and extracted here.
     stored_features: StoredFeatures | None = None
+    # The camera's positions from a pose topic, for the motion rule (None: image evidence).
+    camera_path: CameraPath | None = None
 
     def __post_init__(self) -> None:
         self._cache = FeatureCache(self.cache_bytes)
@@ -336,6 +341,7 @@ class Verifier:
         self.stats.continued += sum(c.accepted and c.proposal == CONTINUED for c in checks)
         self.stats.skipped += sum(check.skipped for check in checks)
         self.stats.given_up += sum(check.verdict.reason == GIVEN_UP_REASON for check in checks)
+        self.stats.stationary += sum(check.verdict.reason == STATIONARY for check in checks)
         return VerifiedDecision(decision, tuple(checks))
 
     def _exhaustive(
@@ -476,7 +482,7 @@ class Verifier:
             if verdict.reason == NOT_BRACKETED:
                 bounds = self._reach(candidate.match_index, database_size)
                 refined, verdict = self._walk(query, window, seen, refined, stride, bounds)
-            return PairCheck(candidate, refined, verdict)
+            return PairCheck(candidate, refined, self._moved(query, candidate, refined, verdict))
 
         if stride == 1:
             return placed(*best(window))
@@ -552,11 +558,31 @@ class Verifier:
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
             refined, verdict = self._bracketed(window, seen, refined, verdict)
+            verdict = self._moved(query, rejected.candidate, refined, verdict)
             hopeless = self._hopeless(verdict)
             hopeless_runs[number - 1] = hopeless_runs[number - 1] + 1 if hopeless else 0
             if verdict.accepted:
                 return PairCheck(rejected.candidate, refined, verdict, proposal=number)
         return rejected
+
+    def _moved(
+        self, query: FrameFeatures, candidate: Candidate, refined: int, verdict: Verdict
+    ) -> Verdict:
+        """An accepted verdict as the motion rule leaves it: rejected STATIONARY when the
+        camera did not leave the refined match's place before the query (verification.motion).
+        The inliers stay: the place is seen, it is only not a revisit."""
+        if not verdict.accepted or not self.params.motion_rule:
+            return verdict
+        q = candidate.query_index
+        left = None
+        if self.camera_path is not None:
+            left = self.camera_path.left(refined, q, self.params.leave_distance_m)
+        if left is None:
+            self.stats.motion_by_images += 1
+            between = frames_between(refined, q, self.params.leave_samples)
+            verdicts = self._verdicts(query, between, self._features(between))
+            left = left_by_images([self._hopeless(v) for _, v in verdicts])
+        return verdict if left else dataclasses.replace(verdict, accepted=False, reason=STATIONARY)
 
     def _bracketed(
         self, window: range, seen: dict[int, Verdict], refined: int, verdict: Verdict
@@ -664,6 +690,7 @@ def verify_in_threads(
     workers: int = 1,
     cache_bytes: int = DEFAULT_CACHE_BYTES,
     stored_features: StoredFeatures | None = None,
+    camera_path: CameraPath | None = None,
 ) -> tuple[list[VerifiedDecision], VerificationStats]:
     """`Verifier.verify` of each decision, on `workers` threads; results in decision order.
 
@@ -689,6 +716,7 @@ def verify_in_threads(
                 cache_bytes // workers,
                 cancel=stop,
                 stored_features=stored_features,
+                camera_path=camera_path,
             )
             try:
                 while not stop.is_set():

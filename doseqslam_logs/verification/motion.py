@@ -1,0 +1,87 @@
+"""The motion rule: a loop closure means the camera left the place and came back.
+
+A camera that stands still (a parked robot, a train at a station) sees the same scene for
+minutes; once kappa seconds have passed, the detector takes its frames as a revisit and the
+geometric check passes them with hundreds of inliers. Nothing in the images of the pair
+tells that apart from a true revisit: what does is the camera's path between the two frames.
+
+Two kinds of evidence, the first that covers the pair decides:
+
+* **A pose topic** (odometry): the camera left if, at some frame between the match and the
+  query, it was at least `leave_distance_m` from where it was at the match (`CameraPath`).
+  Leaving the place's neighbourhood, not distance driven: a parked robot's odometry that
+  jitters in place adds up distance but never leaves.
+* **The images** (no pose topic, or poses that do not cover the pair): `leave_samples` frames
+  evenly spaced strictly between the match and the query are checked against the query with
+  the same check as the pair; the camera left if at least half of them are hopeless (under
+  half of `min_inliers`: they do not see the query's place). A still camera's frames between
+  keep seeing it; one that drove away sees other places for most of the time between.
+
+A pair that passes the check but not the rule is rejected with the reason STATIONARY.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+STATIONARY = "stationary"
+# Frames of the path scanned at a time from the match on: a camera that left is usually found
+# gone within the first block, so a check costs a block, not the whole span (hours at 10 Hz).
+_SCAN_BLOCK = 256
+
+
+@dataclass(frozen=True)
+class CameraPath:
+    """The camera's positions at the frames (metres, by frame index) from a pose topic;
+    `valid[i]` False where the topic does not cover frame i's time."""
+
+    topic: str
+    positions: npt.NDArray[np.float64]  # (N, 3)
+    valid: npt.NDArray[np.bool_]  # (N,)
+    # frames without a pose before frame i, so that a span's coverage costs O(1)
+    _invalid_before: npt.NDArray[np.int64] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        counts = np.concatenate([[0], np.cumsum(~self.valid, dtype=np.int64)])
+        object.__setattr__(self, "_invalid_before", counts)
+
+    def covers(self, first: int, last: int) -> bool:
+        """Every frame from `first` to `last` (inclusive) has a pose."""
+        if first < 0 or last >= len(self.valid) or first > last:
+            return False
+        return bool(self._invalid_before[last + 1] == self._invalid_before[first])
+
+    def left(self, match: int, query: int, distance_m: float) -> bool | None:
+        """Whether the camera was at least `distance_m` from its position at `match` at some
+        frame up to `query`; None when the poses do not cover the frames between."""
+        first, last = min(match, query), max(match, query)
+        if not self.covers(first, last):
+            return None
+        origin = self.positions[first]
+        for start in range(first + 1, last + 1, _SCAN_BLOCK):
+            block = self.positions[start : min(start + _SCAN_BLOCK, last + 1)]
+            if float(np.max(np.sum((block - origin) ** 2, axis=1))) >= distance_m**2:
+                return True
+        return False
+
+
+def frames_between(match: int, query: int, samples: int) -> list[int]:
+    """Up to `samples` frame indices evenly spaced strictly between `match` and `query`
+    (all of them when there are fewer), in increasing order."""
+    first, last = min(match, query), max(match, query)
+    inside = last - first - 1
+    if inside <= 0 or samples <= 0:
+        return []
+    if inside <= samples:
+        return list(range(first + 1, last))
+    # The k-th of `samples` interior points of the span, in integers (the same on every machine).
+    return [first + ((k + 1) * (last - first)) // (samples + 1) for k in range(samples)]
+
+
+def left_by_images(hopeless: list[bool]) -> bool:
+    """The image evidence's verdict from the checks of the frames between (True: hopeless,
+    the frame does not see the query's place): at least half of them, and one at the least."""
+    return bool(hopeless) and 2 * sum(hopeless) >= len(hopeless)
