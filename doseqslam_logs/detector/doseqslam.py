@@ -32,7 +32,7 @@ from .place_search import (
     reference_score,
 )
 from .preprocess import frame_vector
-from .segmentation import Segmenter, feature_count, make_segmenter
+from .segmentation import SMALL_FRAME_SIDE, Segmenter, feature_count, make_segmenter
 from .timing import StageTimes
 from .trajectory import TrajectoryScores, next_best_starts, normalize, trajectory_scores
 
@@ -176,7 +176,9 @@ class DOSeqSLAM:
             if self._places is not None and self._segmenter.name == "orb":  # reuse them
                 places = binary_descriptors(features)
             elif self._places is not None:
-                places = orb_descriptors(gray, p.max_features, p.feature_image_max_side)
+                side = p.feature_image_max_side
+                below = side if p.feature_image_enlarge else SMALL_FRAME_SIDE
+                places = orb_descriptors(gray, p.max_features, side, below)
         return PreparedFrame(vector, features, places, feature_count(features))
 
     def push(self, timestamp_ns: int, gray: GrayImage) -> list[SequenceDecision]:

@@ -43,6 +43,7 @@ LATER_FIELDS = (
     "place_queries",
     "place_margin",
     "place_index_interval_s",
+    "feature_image_enlarge",
 )
 
 
@@ -113,6 +114,10 @@ class Parameters:
     # place the sequence's windows (+-place_margin) would not find. With verification on, the
     # CLI raises it to VERIFIED_INDEX_INTERVAL_S (verification.params).
     place_index_interval_s: float = 0.0
+    # ORB features of a frame smaller than feature_image_max_side are detected on it enlarged
+    # to that side (False: only frames under segmentation.SMALL_FRAME_SIDE are, the paper
+    # mode's). With verification on the CLI turns it on (verification.params).
+    feature_image_enlarge: bool = False
 
     def __post_init__(self) -> None:
         reject_non_finite(self)

@@ -46,7 +46,7 @@ from .difference import FrameStore, sad_columns
 from .enhance import enhance
 from .params import Parameters
 from .place_index import PlaceIndex, PlaceIndexParams
-from .segmentation import create_detector, feature_image
+from .segmentation import SMALL_FRAME_SIDE, create_detector, feature_image
 from .trajectory import TrajectoryScores, trajectory_scores
 
 Descriptors = npt.NDArray[np.uint8]
@@ -59,14 +59,17 @@ RESULTS_PER_PLACE = 2
 _orb = threading.local()
 
 
-def orb_descriptors(gray: GrayImage, max_features: int, max_side: int) -> Descriptors | None:
-    """ORB descriptors of the frame shrunk to `max_side`, small frames enlarged to it
-    (`feature_image`), for a segmentation that is not ORB (thread-safe: one ORB per thread)."""
+def orb_descriptors(
+    gray: GrayImage, max_features: int, max_side: int, enlarge_below: int = SMALL_FRAME_SIDE
+) -> Descriptors | None:
+    """ORB descriptors of the frame shrunk to `max_side`, frames under `enlarge_below`
+    enlarged to it (`feature_image`), for a segmentation that is not ORB (thread-safe: one
+    ORB per thread)."""
     detector = getattr(_orb, "detector", None)
     if detector is None or getattr(_orb, "features", None) != max_features:
         detector = _orb.detector = create_detector("orb", max_features)[0]
         _orb.features = max_features
-    _, descriptors = detector.detectAndCompute(feature_image(gray, max_side), None)
+    _, descriptors = detector.detectAndCompute(feature_image(gray, max_side, enlarge_below), None)
     return None if descriptors is None or len(descriptors) == 0 else np.asarray(descriptors)
 
 

@@ -9,6 +9,7 @@ authors' later code) tracks points instead and ends a sequence when none survive
 
 from __future__ import annotations
 
+import functools
 import threading
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -83,15 +84,17 @@ def shrink(gray: GrayImage, max_side: int) -> GrayImage:
     return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
 
 
-def feature_image(gray: GrayImage, max_side: int) -> GrayImage:
+def feature_image(
+    gray: GrayImage, max_side: int, enlarge_below: int = SMALL_FRAME_SIDE
+) -> GrayImage:
     """The frame features are detected on: `shrink` to max_side, except that a frame whose
-    longer side is under SMALL_FRAME_SIDE is enlarged (bicubic) to max_side, so that ORB's
-    border and patches leave it room; an enlarged frame, or one whose grey levels span less
-    than LOW_CONTRAST_SPAN (but at least MIN_STRETCH_SPAN), then has that span stretched to
-    0-255 (`stretch_contrast`), so that FAST's fixed threshold finds its corners. Other
-    frames of SMALL_FRAME_SIDE px or more come out as `shrink` gives them, bit for bit."""
+    longer side is under `enlarge_below` (SMALL_FRAME_SIDE unless given) is enlarged
+    (bicubic) to max_side, so that ORB's border and patches leave it room; an enlarged frame,
+    or one whose grey levels span less than LOW_CONTRAST_SPAN (but at least MIN_STRETCH_SPAN),
+    then has that span stretched to 0-255 (`stretch_contrast`), so that FAST's fixed threshold
+    finds its corners. Other frames come out as `shrink` gives them, bit for bit."""
     longest = max(gray.shape)
-    small = 0 < longest < min(SMALL_FRAME_SIDE, max_side)
+    small = 0 < longest < min(max(enlarge_below, SMALL_FRAME_SIDE), max_side)
     if not small:
         image = shrink(gray, max_side)
     else:
@@ -190,7 +193,9 @@ class DescriptorSegmenter:
         self._matcher = cv2.BFMatcher(norm)
         self._max_features = params.max_features
         self._max_side = params.feature_image_max_side
-        self._image = feature_image if name in ENLARGED_DETECTORS else shrink
+        enlarge_below = self._max_side if params.feature_image_enlarge else SMALL_FRAME_SIDE
+        enlarged = functools.partial(feature_image, enlarge_below=enlarge_below)
+        self._image = enlarged if name in ENLARGED_DETECTORS else shrink
         self._ratio = params.match_ratio
         self._min_features = params.min_features
         self._common: _Features | None = None

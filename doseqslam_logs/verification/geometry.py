@@ -128,8 +128,8 @@ class Verdict:
 
 def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFeatures:
     """Detect and describe the strongest `params.max_features` features of a gray frame,
-    shrunk to `params.image_max_side` (a frame under SMALL_FRAME_SIDE px enlarged to it:
-    `feature_image`); a frame with fewer than `params.detail_below` there is
+    shrunk to `params.image_max_side` (a smaller frame enlarged to it: `feature_image`); a
+    frame with fewer than `params.detail_below` there is
     detected again at DETAIL_FACTOR times that side (at most its own size), and the finer
     look is kept when it finds more.
 
@@ -151,9 +151,10 @@ def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFe
 
 
 def _detect(gray: GrayImage, max_side: int, params: VerificationParameters) -> FrameFeatures:
-    """The strongest features of `gray` shrunk to `max_side` (enlarged to it when under
-    SMALL_FRAME_SIDE px), in original pixels."""
-    small = feature_image(gray, max_side)
+    """The strongest features of `gray` shrunk to `max_side` (enlarged to it when smaller:
+    a frame of 160x120 gave 9 true pairs on a generated 5-minute drive, 239 enlarged), in
+    original pixels."""
+    small = feature_image(gray, max_side, enlarge_below=max_side)
     # Per axis: each side is rounded separately, so the two ratios differ by < 1 px.
     scale_xy = np.array([small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]])
     scale = float(scale_xy.min())
@@ -195,7 +196,7 @@ def verify_pair(
         or query.descriptors.shape[1:] != match.descriptors.shape[1:]
     ):
         raise ValueError(f"cannot match {query.detector} features against {match.detector}")
-    if max(query.scale, match.scale) > 1:  # an enlarged small frame: fewer features to agree on
+    if max(query.scale, match.scale) > 1:  # an enlarged frame: fewer features to agree on
         params = dataclasses.replace(params, min_inliers=params.small_frame_min_inliers)
     model: Model = "F" if intrinsics is None else "E"
     needed = max(_MIN_POINTS[model], params.min_inliers)
@@ -269,22 +270,30 @@ def match_camera_direction(verdict: Verdict) -> npt.NDArray[np.float64] | None:
 
 
 def bracketed_match(
-    verdicts: Sequence[tuple[int, Verdict]], refined: int, verdict: Verdict
+    verdicts: Sequence[tuple[int, Verdict]],
+    refined: int,
+    verdict: Verdict,
+    max_gap: int | None = None,
 ) -> tuple[int, Verdict]:
     """The frame nearest the query among the verified frames around `refined`, or `refined`
     rejected (NOT_BRACKETED) when the query's position does not lie between two of them.
 
     `verdicts` are the checked frames of one window; the run is the frames next to `refined`
-    (in frame order) that passed with a relative pose. Along a trajectory driven the same
-    way as the query, the match camera is behind the query (z < 0, `match_camera_direction`)
-    before the nearest point and ahead after it: a sign change between neighbours of the run
-    brackets the query, and the one of the two with the smaller |z| is the nearer (among
-    several sign changes, the pair with the most inliers). A lone frame whose sign differs
-    from both its neighbours' is taken as noise, not as two changes (`_without_lone_flips`).
-    Without a change, every verified frame is on one side: the views overlap, but the camera
-    was not where the query was (e.g. the same facades seen from several metres further on).
-    Accepted verdicts without a pose (fundamental matrix) are returned unchanged. Assumes a
-    forward-looking camera.
+    (in frame order) whose fit reached min_inliers with a relative pose, those then rejected
+    for their rotation included: a crossing at such a frame rejects the pair with that
+    frame's verdict, instead of a frame further on whose rotation happens to pass. Along a
+    trajectory driven the same way as the query, the match camera is behind the query
+    (z < 0, `match_camera_direction`) before the nearest point and ahead after it: a sign
+    change between neighbours of the run brackets the query, and the one of the two with
+    the smaller |z| is the nearer. Signs are noisy where the cameras are closest, so the
+    change kept is the one that best splits the whole run into "behind" then "ahead"
+    (`_crossing`), and none is kept when every split leaves too many frames on the wrong
+    side. With `max_gap`, the run also ends where two checked frames are more than that many
+    frames apart: what lies between was not looked at. Without a change, every verified frame
+    is on one side: the views overlap, but the
+    camera was not where the query was (e.g. the same facades seen from several metres
+    further on). Accepted verdicts without a pose (fundamental matrix) are returned
+    unchanged. Assumes a forward-looking camera.
 
     Raises:
         ValueError: `refined` is not one of the frames of `verdicts`.
@@ -297,35 +306,61 @@ def bracketed_match(
         return refined, verdict
     at = frames.index(refined)
     first, last = at, at
-    while first > 0 and _has_pose(ordered[first - 1][1]):
+
+    def joins(i: int, j: int) -> bool:
+        near = max_gap is None or abs(frames[j] - frames[i]) <= max_gap
+        return near and _fitted(ordered[j][1])
+
+    while first > 0 and joins(first, first - 1):
         first -= 1
-    while last + 1 < len(ordered) and _has_pose(ordered[last + 1][1]):
+    while last + 1 < len(ordered) and joins(last, last + 1):
         last += 1
     run = ordered[first : last + 1]
     ahead = [_ahead(v) for _, v in run]
-    side = _without_lone_flips([1 if a >= 0 else -1 for a in ahead])
-    changes = [i for i in range(len(run) - 1) if side[i] < 0 < side[i + 1]]
-    if not changes:
+    i = _crossing([1 if a >= 0 else -1 for a in ahead], [v.inliers for _, v in run])
+    if i is None:
         return refined, dataclasses.replace(verdict, accepted=False, reason=NOT_BRACKETED)
-    i = max(changes, key=lambda k: run[k][1].inliers + run[k + 1][1].inliers)
-    return run[i] if abs(ahead[i]) < abs(ahead[i + 1]) else run[i + 1]
+    nearer, other = (
+        (run[i], run[i + 1]) if abs(ahead[i]) < abs(ahead[i + 1]) else (run[i + 1], run[i])
+    )
+    if not other[1].accepted and nearer[1].accepted:
+        # The place lies between a frame turned past max_rotation_deg and one that is not: the
+        # heading changes fast there, and the one estimate under the limit is not to be
+        # trusted alone (128x64 frames: a pair 23.5 degrees apart estimated at 10).
+        return nearer[0], dataclasses.replace(nearer[1], accepted=False, reason=other[1].reason)
+    # The nearer frame, with its own verdict: rejected when the camera there is turned past
+    # max_rotation_deg (the place is there, but not seen from the query's heading).
+    return nearer
 
 
-def _without_lone_flips(sides: list[int]) -> list[int]:
-    """The sides with each lone flip (a frame whose two neighbours in the run both say the
-    other side) turned to its neighbours' side: a median of three.
+def _crossing(sides: list[int], inliers: list[int]) -> int | None:
+    """The sign change i (sides[i] < 0 < sides[i + 1]) that best splits the run into frames
+    behind (-1) then ahead (+1): the most frames on their split's side, then the most
+    inliers of the pair; None when no change leaves at most (n - 1) // 4 of the n frames on
+    the wrong side.
 
-    The direction of t is least certain where the cameras are closest and the scene is far
-    (forward motion): one frame's sign can flip. On the 10 Hz hour both false pairs were such
-    a flip, "- + - -" and "+ + - +", taken as the crossing 2.2 and 2.5 m from the true one
-    (docs/results.md, "Lone sign flips"). A frame at either end of the run has one neighbour
-    and keeps its side: a short run can still bracket.
+    The direction of t is least certain where the cameras are closest and the scene is far:
+    there one frame's sign can flip, and so can the near-zero signs of the true crossing. A
+    lone flip amid one side ("- + - -", "+ + - +": the 10 Hz hour's two false pairs, 2.2 and
+    2.5 m from the crossing) splits no run well, and a crossing stays the best split with a
+    flip beside it or inside it (a figure eight's false pair 3.3 m from the crossing came from
+    smoothing such flips away first, median-of-three, and taking a later change).
     """
-    smoothed = list(sides)
-    for i in range(1, len(sides) - 1):
-        if sides[i - 1] == sides[i + 1] != sides[i]:
-            smoothed[i] = sides[i - 1]
-    return smoothed
+    n = len(sides)
+    behind_before = [0] * (n + 1)  # frames behind among the first k
+    for k, side in enumerate(sides):
+        behind_before[k + 1] = behind_before[k] + (side < 0)
+    ahead_total = n - behind_before[n]
+    best: tuple[int, int, int] | None = None  # (agreeing frames, pair inliers, -i)
+    for i in range(n - 1):
+        if not sides[i] < 0 < sides[i + 1]:
+            continue
+        ahead_after = ahead_total - ((i + 1) - behind_before[i + 1])
+        score = (behind_before[i + 1] + ahead_after, inliers[i] + inliers[i + 1], -i)
+        best = score if best is None or score > best else best
+    if best is None or n - best[0] > (n - 1) // 4:
+        return None
+    return -best[2]
 
 
 def side_of_query(verdict: Verdict) -> int:
@@ -340,6 +375,12 @@ def side_of_query(verdict: Verdict) -> int:
 
 def _has_pose(verdict: Verdict) -> bool:
     return verdict.accepted and verdict.translation_direction is not None
+
+
+def _fitted(verdict: Verdict) -> bool:
+    """The fit reached min_inliers with a relative pose, whether or not its rotation was
+    then over max_rotation_deg: its side of the query counts in a run."""
+    return verdict.translation_direction is not None
 
 
 def _ahead(verdict: Verdict) -> float:

@@ -132,6 +132,9 @@ COARSE_GRID = 2
 # A check that passes but is not bracketed walks on at most this many refine_radius past its
 # window, towards the side where its frames say the query's place lies (`Verifier._walk`).
 WALK_RADII = 2
+# A bracketing looks at the query's checked frames this many refine_radius either side of the
+# refined match, besides its window (`Verifier._bracketed`).
+BRACKET_RADII = 2
 # `PairCheck.proposal` of a pair accepted where the previous sequence's verified place
 # continues (`Hint`), at a high frame rate.
 CONTINUED = -1
@@ -587,10 +590,18 @@ class Verifier:
     def _bracketed(
         self, window: range, seen: dict[int, Verdict], refined: int, verdict: Verdict
     ) -> tuple[int, Verdict]:
-        """`bracketed_match` over the window's checked frames, when `params.bracket` is on."""
+        """`bracketed_match` over the query's checked frames in the window and within
+        BRACKET_RADII * refine_radius of the refined match, when `params.bracket` is on: a
+        window that ends just past the true crossing would otherwise keep a noisy sign change
+        further on (a figure eight's pair 3.3 m from its place). A run of frames ends at a gap
+        of more than refine_radius unchecked frames.
+        """
         if not self.params.bracket:
             return refined, verdict
-        return bracketed_match([(m, seen[m]) for m in window if m in seen], refined, verdict)
+        reach = BRACKET_RADII * self.params.refine_radius
+        near = range(refined - reach, refined + reach + 1)
+        checked = [(m, v) for m, v in seen.items() if m in window or m in near]
+        return bracketed_match(checked, refined, verdict, self.params.refine_radius)
 
     def _hopeless(self, verdict: Verdict) -> bool:
         """Under half of min_inliers: no near copy of this frame is likely to pass."""
