@@ -348,6 +348,7 @@ FLOAT_VERIFICATION = [
     "confidence",
     "query_interval_s",
     "max_rotation_deg",
+    "leave_distance_m",
 ]
 
 

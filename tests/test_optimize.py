@@ -252,7 +252,9 @@ def test_the_calibrated_odometry_brings_the_metric_graph_near_the_oracle(
     """Issue #20's target on the seed-29 drive: the ATE with the metric loop edges within 1.5x
     of the oracle graph's (the same graph, its loop edges the true relative poses). Measured:
     0.094 against 0.092 m calibrated; 0.146 against 0.077 m (1.91) with the /odom covariance
-    as stated and no bias (docs/export.md)."""
+    as stated and no bias (docs/export.md). Since the best-split bracketing (c597829) the
+    loop edges are better uncalibrated: 0.096 / 0.095 m calibrated, 0.117 / 0.078 m as stated
+    (calibration takes 18 % off, not 20 %)."""
     from pose_graph_table import metric_graph_and_truth, oracle_edges
 
     _, graph, truth = metric_graph_and_truth(drifting)
@@ -268,7 +270,7 @@ def test_the_calibrated_odometry_brings_the_metric_graph_near_the_oracle(
     print(f"seed 29: metric {calibrated:.3f} / oracle {ate(oracle):.3f} m calibrated; "
           f"{uncalibrated:.3f} / {ate(oracle, stated):.3f} m as stated")  # fmt: skip
     assert calibrated <= 1.5 * ate(oracle)
-    assert calibrated < 0.8 * uncalibrated
+    assert calibrated < 0.85 * uncalibrated
     result = optimize_pose_graph(graph)
     assert result.calibration.applied
     assert np.degrees(abs(result.calibration.yaw_rate_bias)) > 0.05  # the drive's drift
@@ -293,7 +295,8 @@ def test_the_g2o_export_carries_the_calibrated_odometry_on_request(
     drifting: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """export --format g2o --calibrate-odometry: the graph optimize builds, for another
-    optimizer; plain least squares on it (gtsam.readG2o) beats the odometry as stated."""
+    optimizer; plain least squares on it (gtsam.readG2o) beats the odometry as stated
+    (measured 0.087 against 0.102 m, 15 % off: the edges since c597829 are better as stated)."""
     ate = {}
     for name, extra in (("stated", []), ("calibrated", ["--calibrate-odometry"])):
         g2o = tmp_path / f"{name}.g2o"
@@ -313,7 +316,7 @@ def test_the_g2o_export_carries_the_calibrated_odometry_on_request(
             assert re.search(r"; odometry calibrated on \d+ metric loop edges: yaw-rate", summary)
     print(f"seed 29, g2o round trip: ATE {ate['stated']:.3f} m as stated, "
           f"{ate['calibrated']:.3f} m calibrated")  # fmt: skip
-    assert ate["calibrated"] < 0.8 * ate["stated"]
+    assert ate["calibrated"] < 0.9 * ate["stated"]
 
 
 # -- other profiles and the errors ----------------------------------------------------------

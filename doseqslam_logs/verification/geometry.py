@@ -129,9 +129,9 @@ class Verdict:
 def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFeatures:
     """Detect and describe the strongest `params.max_features` features of a gray frame,
     shrunk to `params.image_max_side` (a smaller frame enlarged to it: `feature_image`); a
-    frame with fewer than `params.detail_below` there is
-    detected again at DETAIL_FACTOR times that side (at most its own size), and the finer
-    look is kept when it finds more.
+    frame with fewer than `params.detail_below` there and larger than that side is detected
+    again at DETAIL_FACTOR times that side (enlarged to it if need be), and the finer look is
+    kept when it finds more.
 
     A flat or empty frame gives zero features (not an error).
 
