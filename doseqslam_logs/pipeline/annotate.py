@@ -41,13 +41,14 @@ from ..sinks.mcap_writer import (
     write_annotated_mcap,
 )
 from ..sinks.visualization import Visualization, read_trajectory, visual_loops
-from ..sources import is_mcap_file, open_source, pick_image_topic
+from ..sources import Log, is_mcap_file, open_source, pick_image_topic
 from ..sources.base import Promise, Source
 from ..sources.camera_info import read_camera_info
 from ..sources.frame import Frame
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.images import decode_gray
 from ..sources.mcap_source import McapSource
+from ..sources.poses import PoseTrack
 from ..sources.salvage import SalvageReport, salvage_mcap
 from ..verification import (
     DEFAULT_VERIFICATION,
@@ -188,7 +189,7 @@ class Verification:
 
 
 def verify_decisions(
-    read_path: Path,
+    log: Log,
     topic: str,
     result: ReplayResult,
     frame_times: FrameTimes,
@@ -198,18 +199,19 @@ def verify_decisions(
 ) -> Verification | None:
     """The verification stage over a finished replay (None when it is off); `features`: the
     frames' features the replay extracted, if it did; `odometry`: the camera's poses at the
-    frames, for the motion rule (None: it looks at the images)."""
+    frames, for the motion rule (None: it looks at the images). `log`: the run's open Source
+    (or a path)."""
     if options.verification is None:
         return None
     intrinsics, origin = options.intrinsics, "--intrinsics"
     if intrinsics is None:
-        info = read_camera_info(read_path, topic)
+        info = read_camera_info(log, topic)
         intrinsics = None if info is None else Intrinsics(info.fx, info.fy, info.cx, info.cy)
         origin = "" if info is None else info.topic
     start = time.perf_counter()
     checked, stats = verify_in_threads(
         result.decisions,
-        lambda: LogFrameReader(read_path, topic, frame_times, max_pixels=options.max_pixels),
+        lambda: LogFrameReader(log, topic, frame_times, max_pixels=options.max_pixels),
         options.verification,
         intrinsics,
         options.workers,
@@ -225,10 +227,13 @@ def verify_decisions(
     )
 
 
-def visualization_of(annotations: Annotations, read_path: Path, topic: str) -> Visualization:
-    """What the visualization channels draw for these annotations of the log."""
+def visualization_of(
+    annotations: Annotations, log: Log, topic: str, track: PoseTrack | None = None
+) -> Visualization:
+    """What the visualization channels draw for these annotations of the log: the trajectory
+    of its default pose topic (`track` when the run read it already)."""
     loops = visual_loops(annotations.messages)
-    return Visualization(topic, loops, read_trajectory(read_path))
+    return Visualization(topic, loops, read_trajectory(log, track=track))
 
 
 def _hash_in_background(path: Path) -> Future[str]:
@@ -488,26 +493,31 @@ def release_freed_memory() -> None:
 
 
 def _write_output(
-    read_path: Path,
+    source: Source,
     output: Path,
     annotations: Annotations,
     topic: str,
     options: AnnotateOptions,
     stage: StageCallback | None,
+    track: PoseTrack | None,
 ) -> WriteSummary:
     """The write stage: the visualization channels drawn, then the output written."""
     if options.visualization and not options.sidecar:
-        annotations = replace(
-            annotations, visualization=visualization_of(annotations, read_path, topic)
-        )
+        drawn = visualization_of(annotations, source, topic, track)
+        annotations = replace(annotations, visualization=drawn)
     _announce(stage, "write")
     return write_annotated_mcap(
-        read_path, output, annotations, sidecar=options.sidecar, output_format=options.output_format
+        source.path,
+        output,
+        annotations,
+        sidecar=options.sidecar,
+        output_format=options.output_format,
+        source=source,
     )
 
 
 def _replay_log(
-    read_path: Path,
+    source: Source,
     log: Path,
     params: Parameters,
     options: AnnotateOptions,
@@ -520,24 +530,23 @@ def _replay_log(
     """The camera topic, the replay of its frames, what the log promised and its unattributed
     messages."""
     progress, expected, stage = callbacks
-    with open_source(read_path) as source:
-        topic = pick_image_topic(source, options.topic)
-        if recovery is not None and recovery.lost_by_topic.get(topic):
-            lost = recovery.lost_by_topic[topic]
-            counts.messages += lost
-            counts.skip(SKIP_CORRUPT_CHUNK, f"{lost} messages of {topic} in corrupt chunks", lost)
-        promise = promised(source, log, topic, options, recovery is not None)
-        unattributed = source.unattributed_messages()
-        if expected is not None:
-            expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
-        messages = source.image_messages(topic, options.start_ns, options.end_ns)
-        decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
-        frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
-        try:
-            result = _detect(params, recorder(frames), options.workers, progress, stage, features)
-        except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
-            exc.args = (f"{log}: {exc}", *exc.args[1:])
-            raise
+    topic = pick_image_topic(source, options.topic)
+    if recovery is not None and recovery.lost_by_topic.get(topic):
+        lost = recovery.lost_by_topic[topic]
+        counts.messages += lost
+        counts.skip(SKIP_CORRUPT_CHUNK, f"{lost} messages of {topic} in corrupt chunks", lost)
+    promise = promised(source, log, topic, options, recovery is not None)
+    unattributed = source.unattributed_messages()
+    if expected is not None:
+        expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
+    messages = source.image_messages(topic, options.start_ns, options.end_ns)
+    decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
+    frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
+    try:
+        result = _detect(params, recorder(frames), options.workers, progress, stage, features)
+    except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
+        exc.args = (f"{log}: {exc}", *exc.args[1:])
+        raise
     return topic, result, promise, unattributed
 
 
@@ -550,15 +559,31 @@ def _annotate(
     callbacks: _Callbacks,
     recovery: SalvageReport | None,
 ) -> AnnotateResult:
-    """annotate_log on `read_path`: the log itself, or the copy that --recover made of it."""
-    stage = callbacks[2]
+    """annotate_log on `read_path`: the log itself, or the copy that --recover made of it,
+    opened once for the whole run: every stage reads through the one Source."""
     digest = _hash_in_background(log)
+    with open_source(read_path) as source:
+        return _run(source, log, output, params, options, callbacks, recovery, digest)
+
+
+def _run(
+    source: Source,
+    log: Path,
+    output: Path,
+    params: Parameters,
+    options: AnnotateOptions,
+    callbacks: _Callbacks,
+    recovery: SalvageReport | None,
+    digest: Future[str],
+) -> AnnotateResult:
+    """The stages of a run over its open log: replay, verify, metric, write."""
+    stage = callbacks[2]
     counts = FrameCounts()
     recorder = _TimesRecorder()
     # verification's features, extracted as the replay decodes the frames
     with feature_spill_for(options.verification) as features:
         topic, result, promise, unattributed = _replay_log(
-            read_path, log, params, options, callbacks, recovery, counts, recorder, features
+            source, log, params, options, callbacks, recovery, counts, recorder, features
         )
         release_freed_memory()
         count_missing(counts, promise, log, topic)
@@ -568,15 +593,15 @@ def _annotate(
         if options.verification is not None:
             _announce(stage, "verify")
             odometry = read_odometry(
-                read_path, frame_times, options.time_source, options.odometry_topic
+                source, frame_times, options.time_source, options.odometry_topic
             )
         verification = verify_decisions(
-            read_path, topic, result, frame_times, options, features, odometry
+            source, topic, result, frame_times, options, features, odometry
         )
     if verification is not None:
         _announce(stage, "metric")
         verification.metric = metric_edges(
-            read_path,
+            source,
             topic,
             frame_times,
             verification.decisions,
@@ -608,8 +633,9 @@ def _annotate(
         None if verification is None or verification.metric is None else verification.metric.poses,
         spool=True,
     )
+    track = None if odometry is None else odometry.track
     try:
-        written = _write_output(read_path, output, annotations, topic, options, stage)
+        written = _write_output(source, output, annotations, topic, options, stage, track)
     finally:
         annotations.close()
     return AnnotateResult(

@@ -44,7 +44,6 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Final, Literal
 
 import numpy as np
@@ -54,7 +53,8 @@ from scipy.spatial.transform import Rotation
 from .. import waiting
 from ..annotations.records import FrameTimes
 from ..errors import SourceError
-from ..sources import open_source
+from ..sources import Log, opened
+from ..sources.base import Source
 from ..sources.depth import DepthFrames, find_depth_topic, stream_depth
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.poses import ODOMETRY, PoseTrack, canonical_type, read_poses
@@ -142,6 +142,7 @@ class OdometryFrames:
     positions: F64
     valid: npt.NDArray[np.bool_]
     times_ns: npt.NDArray[np.int64]
+    track: PoseTrack | None = None  # the poses as read (the trajectory drawn reuses them)
 
     def camera_path(self) -> CameraPath:
         """The positions at the frames, for verification's motion rule."""
@@ -179,13 +180,6 @@ class OdometryFrames:
             frame += side
 
 
-def find_odometry_topic(path: Path) -> str | None:
-    """The log's first nav_msgs/Odometry topic (the order of its channels), None without."""
-    with open_source(path) as source:
-        topics = [c.topic for c in source.channels() if canonical_type(c.message_type) == ODOMETRY]
-    return topics[0] if topics else None
-
-
 def odometry_frames(track: PoseTrack, times_ns: npt.NDArray[np.int64]) -> OdometryFrames:
     """The odometry at each frame time, as camera poses in optical axes."""
     first, last = int(track.times_ns[0]), int(track.times_ns[-1])
@@ -193,7 +187,7 @@ def odometry_frames(track: PoseTrack, times_ns: npt.NDArray[np.int64]) -> Odomet
     at = track.interpolate(np.clip(times_ns, first, last))
     optical = Rotation.from_matrix(OPTICAL_TO_BODY)
     rotations = Rotation.from_quat(at.quaternions_xyzw) * optical
-    return OdometryFrames(track.topic, rotations, at.positions, valid, times_ns)
+    return OdometryFrames(track.topic, rotations, at.positions, valid, times_ns, track)
 
 
 def odometry_covariance(translation: F64) -> F64:
@@ -337,7 +331,7 @@ class _Fitter:
 
 
 def metric_edges(
-    read_path: Path,
+    log: Log,
     image_topic: str,
     frame_times: FrameTimes,
     decisions: Mapping[int, VerifiedDecision],
@@ -353,7 +347,8 @@ def metric_edges(
     odometry: OdometryFrames | Literal["read"] | None = "read",
 ) -> MetricEdges:
     """The metric pose of every accepted pair (module docstring), fitted on `workers` threads.
-    `odometry_topic`: None the first Odometry topic, "" none; `odometry`: the odometry at the
+    `log`: the run's open Source (or a path, opened here); `odometry_topic`: None the log's
+    default pose topic (`default_pose_topic`), "" none; `odometry`: the odometry at the
     frames when the run has read it already (`read_odometry`), else "read" here.
 
     Raises SourceError when the log cannot be read again.
@@ -367,18 +362,19 @@ def metric_edges(
     chosen, not_fitted = thinned(pairs, interval_s)
     poses = {p.key: not_fitted for p in pairs}
     stats.fitted = len(chosen)
-    if odometry == "read":
-        odometry = read_odometry(read_path, frame_times, time_source, odometry_topic)
-    stats.odometry_topic = "" if odometry is None else odometry.topic
-    params = dataclasses.replace(verification, feature_detector=METRIC_FEATURES)
-    with LogFrameReader(read_path, image_topic, frame_times, max_pixels=max_pixels) as reader:
-        fitter = _Fitter(_Features(reader, params), intrinsics, odometry)
-        fits = _fit_all(read_path, image_topic, chosen, fitter, stats)
-        for done, (key, pose) in enumerate(_in_threads(fits, workers)):
-            poses[key] = pose
-            if progress is not None:
-                progress(done + 1)
-        stats.frames_loaded = fitter.features.loaded
+    with opened(log) as source:
+        if odometry == "read":
+            odometry = read_odometry(source, frame_times, time_source, odometry_topic)
+        stats.odometry_topic = "" if odometry is None else odometry.topic
+        params = dataclasses.replace(verification, feature_detector=METRIC_FEATURES)
+        with LogFrameReader(source, image_topic, frame_times, max_pixels=max_pixels) as reader:
+            fitter = _Fitter(_Features(reader, params), intrinsics, odometry)
+            fits = _fit_all(source, image_topic, chosen, fitter, stats)
+            for done, (key, pose) in enumerate(_in_threads(fits, workers)):
+                poses[key] = pose
+                if progress is not None:
+                    progress(done + 1)
+            stats.frames_loaded = fitter.features.loaded
     return _finished(MetricEdges(poses, stats), start)
 
 
@@ -390,21 +386,28 @@ def _finished(edges: MetricEdges, start: float) -> MetricEdges:
     return edges
 
 
+def _first_odometry_topic(source: Source) -> str | None:
+    odometry = [c.topic for c in source.channels() if canonical_type(c.message_type) == ODOMETRY]
+    return odometry[0] if odometry else None
+
+
 def read_odometry(
-    read_path: Path, frame_times: FrameTimes, time_source: str, asked: str | None
+    log: Log, frame_times: FrameTimes, time_source: str, asked: str | None
 ) -> OdometryFrames | None:
     """The odometry at the frames: `asked` (raises SourceError when it cannot be read), else the
-    first Odometry topic (None when there is none or it cannot be read: the run goes on with
-    the other rungs), "" none."""
-    topic = find_odometry_topic(read_path) if asked is None else asked
-    if not topic:
-        return None
-    try:
-        track = read_poses(read_path, topic)
-    except SourceError:
-        if asked is not None:
-            raise
-        return None
+    log's default pose topic (`default_pose_topic`; None when there is none or it cannot be
+    read: the run goes on with the other rungs), "" none. Its PoseTrack is kept (`track`)
+    for the trajectory the visualization draws."""
+    with opened(log) as source:
+        topic = _first_odometry_topic(source) if asked is None else asked
+        if not topic:
+            return None
+        try:
+            track = read_poses(source, topic)
+        except SourceError:
+            if asked is not None:
+                raise
+            return None
     return odometry_frames(track, frame_times.detector_times_ns(time_source))
 
 
@@ -436,7 +439,7 @@ def _in_threads(
 
 
 def _fit_all(
-    read_path: Path,
+    source: Source,
     image_topic: str,
     pairs: Sequence[AcceptedPair],
     fitter: _Fitter,
@@ -444,27 +447,26 @@ def _fit_all(
 ) -> Iterator[tuple[PairKey, _Fit]]:
     """Each pair's fit, to run: with depth, as the match's depth image arrives (one pass over
     the depth topic), then the pairs whose match had none; else in pair order."""
-    with open_source(read_path) as source:
-        depth_topic = find_depth_topic(source, image_topic)
-        if depth_topic is None:
-            for pair in pairs:
-                yield (
-                    pair.key,
-                    functools.partial(fitter.fit, pair, None, "depth_pnp: no depth topic"),
-                )
-            return
-        stats.depth_topic = depth_topic
-        by_stamp: dict[int, list[AcceptedPair]] = {}
-        stamps = fitter.features.reader.times
+    depth_topic = find_depth_topic(source, image_topic)
+    if depth_topic is None:
         for pair in pairs:
-            by_stamp.setdefault(_stamp(stamps, pair.match), []).append(pair)
-        found = DepthFrames(depth_topic)
-        try:
-            for stamp, image in stream_depth(source, depth_topic, by_stamp, found):
-                for pair in by_stamp.pop(stamp):
-                    yield pair.key, functools.partial(fitter.fit, pair, image.metres, "")
-        finally:
-            stats.depth_messages, stats.depth_skipped = found.messages, found.skipped
+            yield (
+                pair.key,
+                functools.partial(fitter.fit, pair, None, "depth_pnp: no depth topic"),
+            )
+        return
+    stats.depth_topic = depth_topic
+    by_stamp: dict[int, list[AcceptedPair]] = {}
+    stamps = fitter.features.reader.times
+    for pair in pairs:
+        by_stamp.setdefault(_stamp(stamps, pair.match), []).append(pair)
+    found = DepthFrames(depth_topic)
+    try:
+        for stamp, image in stream_depth(source, depth_topic, by_stamp, found):
+            for pair in by_stamp.pop(stamp):
+                yield pair.key, functools.partial(fitter.fit, pair, image.metres, "")
+    finally:
+        stats.depth_messages, stats.depth_skipped = found.messages, found.skipped
     no_depth = "depth_pnp: no depth image at the match"
     for left in by_stamp.values():
         for pair in left:

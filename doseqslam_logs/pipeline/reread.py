@@ -15,6 +15,7 @@ the next requests, for nearby frames, are answered from it and only decoded.
 
 from __future__ import annotations
 
+import contextlib
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -23,7 +24,7 @@ import numpy as np
 
 from ..annotations.records import NO_STAMP, FrameTimes
 from ..closing import Closing
-from ..sources import open_source
+from ..sources import Log, opened
 from ..sources.base import ImageMessage
 from ..sources.image_folder import read_gray_file
 from ..sources.image_header import DEFAULT_MAX_PIXELS
@@ -53,22 +54,26 @@ def runs(indices: Sequence[int], max_gap: int = MAX_GAP_FRAMES) -> list[list[int
 class LogFrameReader(Closing):
     """Decoded gray frames of one camera topic of a log, by frame index (a `FrameLoader`).
 
-    Use as a context manager: it keeps its own reader of the log open.
+    Use as a context manager: given a path it keeps its own reader of the log open; given
+    the run's open Source it reads through it (each read borrows a handle of its own, so
+    threads may each have a LogFrameReader over one Source) and leaves it open.
     """
 
     def __init__(
         self,
-        path: str | Path,
+        log: Log,
         topic: str,
         frame_times: FrameTimes,
         cache_bytes: int = MESSAGE_CACHE_BYTES,
         max_pixels: int = DEFAULT_MAX_PIXELS,
     ) -> None:
-        self.path, self.topic, self.times = Path(path), topic, frame_times
+        self.topic, self.times = topic, frame_times
         self.max_pixels = max_pixels  # the run's cap: the frames it accepted decode again
         self.cache_bytes = cache_bytes
         self.reads = 0  # ranged reads of the log (for benchmarks)
-        self._source = open_source(self.path)
+        self._opened = contextlib.ExitStack()
+        self._source = self._opened.enter_context(opened(log))
+        self.path = self._source.path
         self._messages: OrderedDict[int, ImageMessage] = OrderedDict()
         self._bytes = 0
 
@@ -128,7 +133,7 @@ class LogFrameReader(Closing):
             self._bytes -= len(evicted.data)
 
     def close(self) -> None:
-        self._source.close()
+        self._opened.close()
 
 
 class FolderFrameReader:

@@ -53,7 +53,7 @@ from ..sources import (
     chunk_limits,  # noqa: F401 - the input's chunks are copied within the cap
     refuse_stream,
 )
-from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC
+from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC, Source
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile
 from .message_spool import SpooledMessages, in_order
@@ -184,12 +184,17 @@ def detect_input(input_path: str | os.PathLike[str]) -> InputLog:
     if path.is_dir():
         return _detect_rosbag2_folder(path)
     try:
-        with path.open("rb") as stream:
-            head = stream.read(len(SQLITE_MAGIC))
+        stream = path.open("rb")
     except OSError as exc:
         raise SourceError(f"{path}: cannot open the log: {exc.strerror or exc}") from exc
-    if head.startswith(MCAP_MAGIC):
-        return InputLog("mcap", path, _read_mcap_profile(path))
+    with stream:
+        try:
+            head = stream.read(len(SQLITE_MAGIC))
+        except OSError as exc:
+            raise SourceError(f"{path}: cannot open the log: {exc.strerror or exc}") from exc
+        if head.startswith(MCAP_MAGIC):
+            stream.seek(0)
+            return InputLog("mcap", path, _mcap_profile_of(path, stream))
     if head.startswith(ROS1_MAGIC):
         return InputLog("ros1-bag", path, "ros1")
     if head.startswith(SQLITE_MAGIC):
@@ -223,6 +228,12 @@ def mcap_profile(input_path: str | os.PathLike[str]) -> str:
 
 def _read_mcap_profile(path: Path) -> str:
     with reading_errors(path), path.open("rb") as stream:
+        return _mcap_profile_of(path, stream)
+
+
+def _mcap_profile_of(path: Path, stream: BinaryIO) -> str:
+    """The profile of the MCAP header at the start of `stream`."""
+    with reading_errors(path):
         header = next(iter(StreamReader(stream).records))
     profile = getattr(header, "profile", None)
     if not isinstance(profile, str):
@@ -640,6 +651,7 @@ def _write(
     sidecar: bool,
     summary: WriteSummary,
     output_format: OutputFormat,
+    source: Source | None,
 ) -> None:
     compression = COMPRESSIONS[output_format.compression]
     writer = Writer(stream, chunk_size=output_format.chunk_size, compression=compression)
@@ -647,7 +659,8 @@ def _write(
     visuals = None
     if annotations.visualization is not None and not sidecar:
         encoder = visual_encoder_for_profile(log.profile)
-        visuals = VisualWriter(writer, encoder, log.path, annotations.visualization)
+        reads = log.path if source is None else source
+        visuals = VisualWriter(writer, encoder, reads, annotations.visualization)
     annotator = _Annotator(writer, encoder_for_profile(log.profile), annotations.messages, visuals)
     if not sidecar:
         summary.copied_messages, summary.replaced_topics = _copy_input(log, writer, annotator)
@@ -663,20 +676,24 @@ def write_annotated_mcap(
     *,
     sidecar: bool = False,
     output_format: OutputFormat | None = None,
+    source: Source | None = None,
 ) -> WriteSummary:
     """Writes `output_path`: the input log's records unchanged plus our channels and metadata
     (only ours and the metadata with `sidecar=True`).
 
-    The input is opened read-only and streamed. The output is written to a temporary file
-    beside it and renamed into place only when complete.
+    The input is opened read-only and streamed; the match images of the visualization are
+    read through `source` (the run's open input) when given, else through the input opened
+    again. The output is written to a temporary file beside it and renamed into place only
+    when complete.
     Raises SourceError when the input cannot be read, OutputError when the output cannot be
     written (also when a message does not fit its schema) or would overwrite the input.
     """
-    source, output = Path(input_path), Path(output_path)
-    log = detect_input(source)
-    refuse_same_file(source, output)
+    given, output = Path(input_path), Path(output_path)
+    log = detect_input(given)
+    refuse_same_file(given, output)
     refuse_same_file(log.path, output)
     summary = WriteSummary(output, log.kind, log.profile)
     with atomic_output(output) as stream:
-        _write(stream, log, annotations, sidecar, summary, output_format or OutputFormat())
+        chunks = output_format or OutputFormat()
+        _write(stream, log, annotations, sidecar, summary, chunks, source)
     return summary

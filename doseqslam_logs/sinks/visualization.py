@@ -20,9 +20,9 @@ query, so the writer has already registered the camera channel whose schema it r
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,9 +30,9 @@ from mcap.writer import Writer
 
 from ..annotations.records import OUR_TOPIC_PREFIX, LoopClosureRecord, TimedMessage
 from ..errors import SourceError
-from ..sources import open_source
+from ..sources import Log, opened
 from ..sources.base import Source
-from ..sources.poses import ODOMETRY, POSE_TYPES, PoseTrack, canonical_type, read_poses
+from ..sources.poses import PoseTrack, default_pose_topic, read_poses
 from .visual_encoders import (
     LINE_LIST,
     LINE_STRIP,
@@ -125,52 +125,33 @@ def visual_loops(messages: Iterable[TimedMessage]) -> list[VisualLoop]:
     return sorted(loops, key=lambda loop: loop.query_log_time_ns)
 
 
-def choose_pose_topic(source: Source) -> str | None:
-    """The log's first nav_msgs/Odometry topic (what a robot itself estimates), else its first
-    topic of another pose type (PoseStamped, PoseWithCovarianceStamped, foxglove.PoseInFrame);
-    None without one. 'First' is the order of the log's channels."""
-    topics = [(c.topic, canonical_type(c.message_type)) for c in source.channels()]
-    poses = [(topic, kind) for topic, kind in topics if kind in POSE_TYPES]
-    odometry = [topic for topic, kind in poses if kind == ODOMETRY]
-    candidates = odometry or [topic for topic, _ in poses]
-    return candidates[0] if candidates else None
-
-
-def read_trajectory(path: Path, topic: str | None = None) -> Trajectory | None:
-    """The pose topic (`topic`, else `choose_pose_topic`) as a Trajectory; None when the log
-    has none, or its poses cannot be read (the 3-D lines are then left out, nothing else)."""
+def read_trajectory(
+    log: Log, topic: str | None = None, track: PoseTrack | None = None
+) -> Trajectory | None:
+    """The pose topic (`topic`, else `default_pose_topic`) as a Trajectory: `track` when the
+    run has read that topic already, else read here. None when the log has none, or its poses
+    cannot be read (the 3-D lines are then left out, nothing else)."""
     try:
-        with open_source(path) as source:
-            topic = topic or choose_pose_topic(source)
+        with opened(log) as source:
+            topic = topic or default_pose_topic(source)
             if topic is None:
                 return None
-            first = next(iter(source.messages(topic)), None)
-        track = read_poses(path, topic)
+            if track is None or track.topic != topic:
+                track = read_poses(source, topic)
     except SourceError:
         return None
-    frame_id = _frame_id(None if first is None else first.message)
-    return Trajectory(topic, frame_id or DEFAULT_FRAME_ID, track)
-
-
-def _frame_id(message: Any) -> str:
-    """header.frame_id (ROS) or frame_id (foxglove.PoseInFrame, protobuf or JSON dict)."""
-    header = _get(message, "header")
-    value = _get(header, "frame_id") if header is not None else _get(message, "frame_id")
-    return value if isinstance(value, str) else ""
-
-
-def _get(value: Any, name: str) -> Any:
-    return value.get(name) if isinstance(value, dict) else getattr(value, name, None)
+    return Trajectory(topic, track.frame_id or DEFAULT_FRAME_ID, track)
 
 
 class VisualWriter:
     """Writes the visualization channels into the output, interleaved by log time."""
 
     def __init__(
-        self, writer: Writer, encoder: VisualEncoder, read_path: Path, plan: Visualization
+        self, writer: Writer, encoder: VisualEncoder, log: Log, plan: Visualization
     ) -> None:
         self.writer, self.encoder, self.plan = writer, encoder, plan
-        self.read_path = read_path
+        self.log = log  # the run's open input, or its path (opened at the first match image)
+        self._opened = contextlib.ExitStack()
         self.position = 0  # next loop to draw
         self.trajectory_written = plan.trajectory is None
         self.camera: tuple[int, str, dict[str, str]] | None = None  # schema, encoding, metadata
@@ -201,8 +182,7 @@ class VisualWriter:
     def finish(self) -> dict[str, int]:
         """Writes the rest; returns the messages written per topic."""
         self.write_until(None)
-        if self._source is not None:
-            self._source.close()
+        self._opened.close()
         return dict(sorted(self.written.items()))
 
     def _write_trajectory(self, log_time_ns: int) -> None:
@@ -249,13 +229,13 @@ class VisualWriter:
     def _read_match(self, loop: VisualLoop) -> bytes:
         """The match frame's message: the first of the camera topic at its log time."""
         if self._source is None:
-            self._source = open_source(self.read_path)
+            self._source = self._opened.enter_context(opened(self.log))
         start = loop.match_log_time_ns
         messages = self._source.raw_messages(self.plan.camera_topic, start, start + 1)
         for _, data in messages:
             return data
         raise SourceError(
-            f"{self.read_path}: the image of {self.plan.camera_topic} at log time {start} "
+            f"{self._source.path}: the image of {self.plan.camera_topic} at log time {start} "
             "is not found again (the log changed under us)"
         )
 

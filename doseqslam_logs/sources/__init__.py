@@ -7,9 +7,10 @@ is one new module plus one entry.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from doseqslam_logs.errors import NoCameraError, SourceError
@@ -36,8 +37,12 @@ __all__ = [
     "image_channels",
     "is_mcap_file",
     "open_source",
+    "opened",
     "pick_image_topic",
 ]
+
+# What a reading helper takes: the run's open log, or a path it opens for itself.
+Log = Source | str | os.PathLike[str]
 
 
 # A probe sees the path and the first 16 bytes of the file (empty for a directory).
@@ -126,6 +131,18 @@ def open_source(path: str | Path) -> Source:
         f"{path}: not a log file (not MCAP, ROS 1 .bag, rosbag2 .db3 or rosbag2 directory; "
         f"it starts with {head!r})"
     )
+
+
+@contextlib.contextmanager
+def opened(log: Log) -> Iterator[Source]:
+    """`log` itself when it is an open Source (left open: whoever opened it closes it), else
+    the log at that path, opened for the block. A run opens its log once and hands the open
+    Source to every stage; a helper called on its own takes a path."""
+    if isinstance(log, (str, os.PathLike)):
+        with open_source(Path(log)) as source:
+            yield source
+    else:
+        yield log
 
 
 def image_channels(source: Source) -> list[ChannelInfo]:

@@ -8,12 +8,10 @@ with the image topic (/camera/image/compressed -> /camera/camera_info).
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-from . import open_source
+from . import Log, opened
 
 CAMERA_INFO_TYPES = (
     "sensor_msgs/msg/CameraInfo",
@@ -36,14 +34,14 @@ class CameraInfo:
     cy: float
 
 
-def read_camera_info(path: str | os.PathLike[str], image_topic: str) -> CameraInfo | None:
+def read_camera_info(log: Log, image_topic: str) -> CameraInfo | None:
     """The first CameraInfo of the camera of `image_topic`, or None when the log has none
     (or only ones without a focal length, e.g. an uncalibrated camera: K all zero). The
     camera's CameraInfo topic is the one sharing the longest prefix with the image topic.
 
     Raises SourceError when the log cannot be read.
     """
-    with open_source(Path(path)) as source:
+    with opened(log) as source:
         topics = [c.topic for c in source.channels() if _is_camera_info(c.message_type)]
         topic = _closest(topics, image_topic)
         if topic is None:

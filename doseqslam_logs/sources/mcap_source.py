@@ -43,6 +43,7 @@ from doseqslam_logs.sources.base import (
     Promise,
 )
 from doseqslam_logs.sources.chunk_limits import ChunkTooLargeError, check_chunk_size
+from doseqslam_logs.sources.handles import HandlePool
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 from doseqslam_logs.sources.mcap_index import indexed_topic_messages
 
@@ -365,6 +366,10 @@ def is_complete(file: IO[bytes]) -> bool:
     return tail.endswith(MCAP_MAGIC) and tail.startswith(_FOOTER)
 
 
+def _close_handle(file: IO[bytes]) -> None:
+    file.close()
+
+
 class McapSource:
     """An MCAP file, opened read-only.
 
@@ -385,11 +390,23 @@ class McapSource:
         except BaseException:
             self._file.close()
             raise
+        # Every read borrows a handle: the one opened here, another only for reads at once.
+        self._handles: HandlePool[IO[bytes]] = HandlePool(
+            self._open_handle, _close_handle, first=self._file
+        )
         self._channels: list[ChannelInfo] | None = None
         # Without a summary: messages per topic by the message index records, when every chunk
         # has them (None: no chunks, or some without; set by channels()).
         self._index_counts: Counter[str] | None = None
         self._deserializers: dict[tuple[int, str], Deserializer] = {}
+
+    def _open_handle(self) -> IO[bytes]:
+        return open(self.path, "rb")  # closed by the pool
+
+    @property
+    def handles_opened(self) -> int:
+        """How many times this source opened its file (for tests and benchmarks)."""
+        return self._handles.opened
 
     def _reader(self, file: IO[bytes]) -> SeekingReader:
         return SeekingReader(file, validate_crcs=True, record_size_limit=max(self.size, 1))
@@ -453,12 +470,13 @@ class McapSource:
             limit = max(self.size, 1)
             try:
                 stats = None
-                if self._summary:
-                    stats = _stats_from_index(self._file, self._summary, limit)
-                if stats is None:
-                    tally = _tally_stream(self._file, limit)
-                    stats = list(tally.stats.values())
-                    self._index_counts = _index_counts_by_topic(tally)
+                with self._handles.borrowed() as file:
+                    if self._summary:
+                        stats = _stats_from_index(file, self._summary, limit)
+                    if stats is None:
+                        tally = _tally_stream(file, limit)
+                        stats = list(tally.stats.values())
+                        self._index_counts = _index_counts_by_topic(tally)
             except Exception as exc:
                 raise SourceError(
                     f"{self.path}: cannot list the channels ({describe_read_error(exc)}); "
@@ -518,8 +536,7 @@ class McapSource:
         if start_ns is not None and end_ns is not None and start_ns >= end_ns:
             return
         try:
-            # A handle per iteration: two iterators seeking one shared handle would interfere.
-            with open(self.path, "rb") as file:
+            with self._handles.borrowed() as file:
                 for schema, channel, message in self._records(file, topic, start_ns, end_ns):
                     if schema is not None and is_image_type(schema.name):
                         yield self._to_image(schema, channel, message)
@@ -538,7 +555,7 @@ class McapSource:
 
         Raises SourceError (while iterating) for a damaged file.
         """
-        with self._reading(topic), open(self.path, "rb") as file:
+        with self._reading(topic), self._handles.borrowed() as file:
             for _, _, message in self._records(file, topic, start_ns, end_ns):
                 yield message.log_time, bytes(message.data)
 
@@ -548,7 +565,7 @@ class McapSource:
         Raises SourceError (while iterating) for a damaged file or an unsupported encoding.
         """
         self._check_complete()
-        with self._reading(topic), open(self.path, "rb") as file:
+        with self._reading(topic), self._handles.borrowed() as file:
             for schema, channel, message in self._records(file, topic, None, None):
                 if schema is None:
                     raise SourceError(f"{self.path}: topic {topic!r} has no schema")
@@ -584,7 +601,9 @@ class McapSource:
             if getattr(seeking, "_summary", False) is None:
                 seeking._summary = self._summary
             return _iter_topic(seeking, topic, start_ns, end_ns, ordered=True)
-        # NonSeekingReader with log_time_order=True would sort the whole file in memory.
+        # NonSeekingReader with log_time_order=True would sort the whole file in memory. It
+        # reads from where the handle stands: a borrowed handle stands where its last read left.
+        file.seek(0)
         reader = NonSeekingReader(file, validate_crcs=True, record_size_limit=max(self.size, 1))
         stream = _iter_topic(reader, topic, start_ns, end_ns, ordered=False)
         return in_log_time_order(stream, REORDER_WINDOW)
@@ -617,8 +636,8 @@ class McapSource:
         return self._deserializers[key]
 
     def close(self) -> None:
-        """Close the file; iterators already started keep their own handle."""
-        self._file.close()
+        """Close the file; iterators already started keep their handle until they end."""
+        self._handles.close()
 
     def __enter__(self) -> McapSource:
         return self

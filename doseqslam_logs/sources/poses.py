@@ -22,7 +22,8 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import SourceError
-from . import open_source
+from . import Log, opened
+from .base import Source
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -48,6 +49,7 @@ class PoseTrack:
     positions: F64  # (N, 3)
     quaternions_xyzw: F64  # (N, 4), unit
     covariances: F64 | None  # (N, 6, 6) in ROS order (x, y, z, rot x, rot y, rot z), or None
+    frame_id: str = ""  # the first message's frame (header.frame_id), "" without one
 
     def __len__(self) -> int:
         return int(self.times_ns.shape[0])
@@ -75,7 +77,7 @@ class PoseTrack:
         if self.covariances is not None:
             w3 = fraction[:, None, None]
             covariances = (1 - w3) * self.covariances[lower] + w3 * self.covariances[upper]
-        return PoseTrack(self.topic, query, positions, quaternions, covariances)
+        return PoseTrack(self.topic, query, positions, quaternions, covariances, self.frame_id)
 
     def _check_range(self, query: I64) -> None:
         if len(self) == 0:
@@ -123,23 +125,50 @@ def canonical_type(name: str) -> str:
     return name.replace("/msg/", "/")
 
 
-def read_poses(path: str | Path, topic: str) -> PoseTrack:
-    """Every pose of `topic` in the log at `path` (MCAP, ROS 1 .bag, rosbag2 folder or .db3).
+def default_pose_topic(source: Source) -> str | None:
+    """The pose topic a run uses when none is asked for (the motion rule, the metric poses
+    and the trajectory drawn, all of them): the log's first nav_msgs/Odometry topic (what a
+    robot itself estimates), else its first topic of another pose type (PoseStamped,
+    PoseWithCovarianceStamped, foxglove.PoseInFrame); None without one. 'First' is the order
+    of the log's channels."""
+    topics = [(c.topic, canonical_type(c.message_type)) for c in source.channels()]
+    poses = [(topic, kind) for topic, kind in topics if kind in POSE_TYPES]
+    odometry = [topic for topic, kind in poses if kind == ODOMETRY]
+    candidates = odometry or [topic for topic, _ in poses]
+    return candidates[0] if candidates else None
+
+
+def read_poses(log: Log, topic: str) -> PoseTrack:
+    """Every pose of `topic` in the log (an open Source, or the path of an MCAP, ROS 1 .bag,
+    rosbag2 folder or .db3), with the first message's frame id.
 
     Raises SourceError (one line naming the file and the topic) when the log cannot be read,
     the topic is missing, its message type is not a supported pose type, it holds no messages,
     or a pose is not finite or has a zero quaternion.
     """
-    path = Path(path)
-    with open_source(path) as source:
+    with opened(log) as source:
+        path = source.path
         types = [c.message_type for c in source.channels() if c.topic == topic]
         kind = _check_type(path, topic, [n for t in types for n in t.split(", ")])
         columns = _Columns(path, topic, with_covariance=kind in _WITH_COVARIANCE)
         for m in source.messages(topic):
+            if not columns.times:
+                columns.frame_id = frame_id_of(m.message)
             columns.add(_pose(kind, m.message, m.log_time_ns))
     if not columns.times:
         raise SourceError(f"{path}: topic {topic!r} holds no messages")
     return _track(columns)
+
+
+def frame_id_of(message: Any) -> str:
+    """header.frame_id (ROS) or frame_id (foxglove.PoseInFrame, protobuf or JSON dict)."""
+    header = _get(message, "header")
+    value = _get(header, "frame_id") if header is not None else _get(message, "frame_id")
+    return value if isinstance(value, str) else ""
+
+
+def _get(value: Any, name: str) -> Any:
+    return value.get(name) if isinstance(value, dict) else getattr(value, name, None)
 
 
 def _check_type(path: Path, topic: str, type_names: list[str]) -> str:
@@ -209,6 +238,7 @@ class _Columns:
         self.poses = array("d")  # x, y, z, qx, qy, qz, qw per message
         self.covariances = array("d")  # 36 per message, when the type has a covariance
         self.with_covariance = with_covariance
+        self.frame_id = ""
 
     def add(self, pose: _Pose) -> None:
         if pose.covariance is not None and len(pose.covariance) != 36:
@@ -241,4 +271,5 @@ def _track(columns: _Columns) -> PoseTrack:
     if columns.with_covariance:
         matrices = np.frombuffer(columns.covariances, dtype=np.float64).reshape(-1, 6, 6)
         covariances = matrices[order][keep]
-    return PoseTrack(topic, times[keep], positions, quaternions / norms[:, None], covariances)
+    unit = quaternions / norms[:, None]
+    return PoseTrack(topic, times[keep], positions, unit, covariances, columns.frame_id)

@@ -21,6 +21,7 @@ from doseqslam_logs.sources.base import (
     ImageMessage,
     Promise,
 )
+from doseqslam_logs.sources.handles import HandlePool
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
 
 if TYPE_CHECKING:
@@ -93,6 +94,19 @@ def _open_reader(path: Path) -> AnyReader:
     return reader
 
 
+def _close_reader(reader: AnyReader) -> None:
+    if reader.stack is not None:
+        reader.close()
+
+
+def _same_connections(reader: AnyReader, connections: list[Connection]) -> list[Connection]:
+    """`connections` (of the bag's first reader) as `reader`'s own: rosbags reads a
+    connection through the reader that owns it. Two readers of one bag list the same
+    connections in the same order."""
+    ids = {c.id for c in connections}
+    return [c for c in reader.connections if c.id in ids]
+
+
 def _time_range(connections: list[Connection]) -> tuple[int | None, int | None]:
     """First and last log time from the ROS 1 reader's in-memory index (IndexData.time, sorted);
     rosbag2 readers keep no per-topic index, so (None, None) for them."""
@@ -135,7 +149,14 @@ class RosbagsSource:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._reader = _open_reader(self.path)
+        self._reader = _open_reader(self.path)  # its connections describe the bag
+        # A rosbags reader seeks one file: each iteration borrows its own (module handles).
+        self._readers = HandlePool(lambda: _open_reader(self.path), _close_reader, self._reader)
+
+    @property
+    def handles_opened(self) -> int:
+        """How many times this source opened the bag (for tests and benchmarks)."""
+        return self._readers.opened
 
     def channels(self) -> list[ChannelInfo]:
         """Every topic (several connections of one topic are merged), with message counts;
@@ -190,11 +211,13 @@ class RosbagsSource:
             return
         try:
             deserializers = {c.msgtype: self._deserializer(c.msgtype) for c in connections}
-            messages = self._reader.messages(connections=connections, start=start_ns, stop=end_ns)
-            for connection, log_time, payload in messages:
-                record = RecordInfo(connection.topic, log_time)
-                deserialize = deserializers[connection.msgtype]
-                yield image_from_payload(connection.msgtype, payload, deserialize, record)
+            with self._readers.borrowed() as reader:
+                own = _same_connections(reader, connections)
+                messages = reader.messages(connections=own, start=start_ns, stop=end_ns)
+                for connection, log_time, payload in messages:
+                    record = RecordInfo(connection.topic, log_time)
+                    deserialize = deserializers[connection.msgtype]
+                    yield image_from_payload(connection.msgtype, payload, deserialize, record)
         except DoseqslamError:
             raise
         except Exception as exc:
@@ -213,8 +236,9 @@ class RosbagsSource:
         connections = [c for c in self._reader.connections if c.topic == topic]
         if not connections:  # rosbags would yield every message of the bag
             return
-        with self._reading(topic):
-            messages = self._reader.messages(connections=connections, start=start_ns, stop=end_ns)
+        with self._reading(topic), self._readers.borrowed() as reader:
+            own = _same_connections(reader, connections)
+            messages = reader.messages(connections=own, start=start_ns, stop=end_ns)
             for _, log_time, payload in messages:
                 yield log_time, bytes(payload)
 
@@ -226,8 +250,10 @@ class RosbagsSource:
         connections = [c for c in self._reader.connections if c.topic == topic]
         if not connections:  # rosbags would yield every message of the bag
             return
-        with self._reading(topic):
-            for connection, log_time, payload in self._reader.messages(connections=connections):
+        with self._reading(topic), self._readers.borrowed() as reader:
+            for connection, log_time, payload in reader.messages(
+                connections=_same_connections(reader, connections)
+            ):
                 decoded = self._reader.deserialize(payload, connection.msgtype)
                 yield DecodedMessage(log_time, connection.msgtype, decoded)
 
@@ -248,9 +274,8 @@ class RosbagsSource:
         return lambda payload: reader.deserialize(payload, msgtype)
 
     def close(self) -> None:
-        """Close the bag."""
-        if self._reader.stack is not None:
-            self._reader.close()
+        """Close the bag; iterations already started keep their reader until they end."""
+        self._readers.close()
 
     def __enter__(self) -> RosbagsSource:
         return self

@@ -1,0 +1,140 @@
+"""The run owns the log (issue #36, item 1): `annotate` opens its input once as a Source and
+every stage reads through it, so the input file is opened at most 6 times (the format's probe,
+the reader, the sha256, the writer's probe and its copy pass; 86 to 102 before), the odometry
+is read once, and the sources lend each read a handle of its own (two at once: two handles)."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.sources import open_source, opened
+from doseqslam_logs.sources.handles import HandlePool
+from doseqslam_logs.sources.mcap_source import McapSource
+from doseqslam_logs.sources.rosbags_source import RosbagsSource
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
+TOPIC = "/camera/image/compressed"
+MAX_OPENS = 6
+
+_watched: list[str] = []  # the path whose opens are counted ("" none)
+_opens: Counter[str] = Counter()
+
+
+def _count_opens(event: str, args: tuple[Any, ...]) -> None:
+    watched = event == "open" and _watched and isinstance(args[0], (str, Path))
+    if watched and str(Path(args[0]).resolve()) == _watched[0]:
+        _opens[_watched[0]] += 1
+
+
+sys.addaudithook(_count_opens)  # for the whole process: cheap while nothing is watched
+
+
+def opens_of(path: Path, argv: list[str]) -> int:
+    _watched[:] = [str(path.resolve())]
+    _opens.clear()
+    try:
+        assert main(argv) == 0
+    finally:
+        _watched.clear()
+    return _opens[str(path.resolve())]
+
+
+@pytest.fixture
+def topic_reads(monkeypatch: pytest.MonkeyPatch) -> Counter[tuple[str, str]]:
+    """(method, topic) -> calls of the sources' readers of one topic."""
+    calls: Counter[tuple[str, str]] = Counter()
+    for cls in (McapSource, RosbagsSource):
+        for name in ("messages", "raw_messages", "image_messages"):
+            original = getattr(cls, name)
+
+            def counted(self: Any, topic: str, *a: Any, _o: Any = original, _n: str = name) -> Any:
+                calls[(_n, topic)] += 1
+                return _o(self, topic, *a)
+
+            monkeypatch.setattr(cls, name, counted)
+    return calls
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["drive_loops.ros2.mcap", "drive_varrate.bag"])
+def test_annotate_opens_its_input_at_most_six_times_and_reads_the_odometry_once(
+    name: str, tmp_path: Path, topic_reads: Counter[tuple[str, str]]
+) -> None:
+    log = SAMPLES / name
+    opens = opens_of(log, ["annotate", str(log), "-o", str(tmp_path / "out.mcap")])
+    assert 0 < opens <= MAX_OPENS
+    assert topic_reads[("messages", "/odom")] == 1
+    assert topic_reads[("messages", "/camera/camera_info")] == 1
+    assert ("messages", "/ground_truth/pose") not in topic_reads  # /odom is the pose topic
+
+
+def test_a_rosbag2_folder_is_opened_once_by_its_source(tmp_path: Path) -> None:
+    folder = SAMPLES / "drive_loops.rosbag2"
+    with open_source(folder) as source:
+        assert isinstance(source, RosbagsSource)
+        for _ in range(3):
+            assert sum(1 for _ in source.image_messages(TOPIC)) == 240
+        assert source.handles_opened == 1
+
+
+def test_reads_one_after_another_share_one_handle_and_reads_at_once_get_their_own() -> None:
+    with open_source(SAMPLES / "drive_loops.ros2.mcap") as source:
+        assert isinstance(source, McapSource)
+        one = [m.log_time_ns for m in source.image_messages(TOPIC)]
+        again = [m.log_time_ns for m in source.image_messages(TOPIC)]
+        assert one == again and source.handles_opened == 1
+        # Interleaved: the second iteration must not seek the first one's handle.
+        first, second = source.image_messages(TOPIC), source.image_messages(TOPIC)
+        interleaved = [(a.log_time_ns, b.log_time_ns) for a, b in zip(first, second, strict=True)]
+        assert interleaved == list(zip(one, one, strict=True))
+        assert source.handles_opened == 2
+        # Threads: each reads the whole topic through the one source, all get it whole.
+        results: list[list[int]] = []
+
+        def read() -> None:
+            results.append([m.log_time_ns for m in source.image_messages(TOPIC)])
+
+        threads = [threading.Thread(target=read) for _ in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        assert results == [one] * 4
+        assert source.handles_opened <= 2 + 4
+
+
+def test_the_pool_closes_a_handle_given_back_after_it_closed() -> None:
+    made: list[list[str]] = []
+    closed: list[list[str]] = []
+    pool: HandlePool[list[str]] = HandlePool(lambda: made.append([]) or made[-1], closed.append)
+
+    def borrow() -> Iterator[list[str]]:
+        with pool.borrowed() as handle:
+            yield handle
+
+    lent = borrow()
+    handle = next(lent)
+    with pool.borrowed() as other:
+        assert other is not handle  # lent: a second one is made
+    pool.close()
+    assert closed == [other]  # the idle one closes now
+    next(lent, None)  # the lent one is given back after the close
+    assert closed == [other, handle] and pool.opened == 2
+
+
+def test_opened_leaves_an_open_source_open_and_closes_what_it_opened() -> None:
+    log = SAMPLES / "drive_loops.ros2.mcap"
+    with open_source(log) as source:
+        with opened(source) as same:
+            assert same is source
+        assert sum(1 for _ in source.image_messages(TOPIC)) == 240  # still open
+    with opened(log) as mine:
+        assert mine.path == log
