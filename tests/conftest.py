@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import hashlib
+import io
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -17,3 +22,36 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.fail(f"real test data not found at {SHARED_DATA} (set DOSEQSLAM_SHARED_DATA)")
     return SHARED_DATA
+
+
+SAMPLE_LOGS = REPO / "sample_logs"
+
+
+@pytest.fixture(scope="session")
+def annotated_sample(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Path]:
+    """`annotated_sample(name, *options)`: `sample_logs/NAME` annotated by this version with
+    `doseqslam-logs annotate NAME -o OUT *options`, once per test run (shared by the xdist
+    workers through a locked folder of the run's own temporary root), for tests that only
+    read the output: a dozen test files read the same annotation of a sample."""
+    base = tmp_path_factory.getbasetemp()
+    # Under xdist each worker's basetemp is a folder of the run's root: share that root.
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    folder = root / "annotated-samples"
+    folder.mkdir(exist_ok=True)
+
+    def annotated(name: str, *options: str) -> Path:
+        from doseqslam_logs.cli.main import main
+
+        key = hashlib.sha256(repr((name, options)).encode()).hexdigest()[:12]
+        out = folder / f"{key}-{Path(name).name}.mcap"
+        with open(folder / f"{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # one worker annotates, the others wait for it
+            if not out.exists():
+                made = folder / f".{key}.partial.mcap"
+                with contextlib.redirect_stdout(io.StringIO()):
+                    code = main(["annotate", str(SAMPLE_LOGS / name), "-o", str(made), *options])
+                assert code == 0, f"annotate {name} {options} failed"
+                made.rename(out)
+        return out
+
+    return annotated

@@ -7,6 +7,7 @@ import io
 import itertools
 import json
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -28,10 +29,8 @@ BAG = SAMPLES / "drive_loops.bag"  # annotated into an MCAP with the ROS 1 profi
 
 
 @pytest.fixture(scope="module")
-def annotated(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("export") / "drive_loops.annotated.mcap"
-    assert main(["annotate", str(BAG), "-o", str(out)]) == 0  # verification on (default)
-    return out
+def annotated(annotated_sample: Callable[..., Path]) -> Path:
+    return annotated_sample(BAG.name)  # `annotate` with its defaults: verification on
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,7 @@ import csv
 import io
 import math
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -87,8 +88,8 @@ def translation_errors(log: AnnotatedLog, method: str) -> list[float]:
 
 
 @pytest.fixture(scope="module")
-def loops(tmp_path_factory: pytest.TempPathFactory) -> AnnotatedLog:
-    return annotate(LOOPS, tmp_path_factory.mktemp("metric") / "loops.mcap")
+def loops(annotated_sample: Callable[..., Path]) -> AnnotatedLog:
+    return read_annotations(annotated_sample(LOOPS.name))
 
 
 @pytest.mark.slow

@@ -62,7 +62,10 @@ def test_the_papers_detector_annotates_the_samples_to_the_same_bytes(tmp_path) -
 
 @pytest.mark.slow
 @pytest.mark.skipif(not _has_reference(), reason=f"no git history with {REFERENCE} here")
-def test_the_commands_defaults_annotate_the_samples_to_the_same_bytes(tmp_path) -> None:
+def test_the_commands_defaults_annotate_the_samples_to_the_same_bytes(
+    tmp_path, annotated_sample
+) -> None:
     logs = [REPO / "sample_logs" / name for name in compare_versions.SAMPLES]
-    results = compare_versions.compare(BYTES_REFERENCE, logs, [], tmp_path)
+    ours = lambda log: annotated_sample(log.name)  # noqa: E731 - the run's shared outputs
+    results = compare_versions.compare(BYTES_REFERENCE, logs, [], tmp_path, current=ours)
     assert results == [(log.name, True) for log in logs]

@@ -17,7 +17,6 @@ from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
 from doseqslam_logs.evaluation.verified import verified_decisions
-from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
 from doseqslam_logs.pipeline.replay import replay
 from doseqslam_logs.pipeline.reread import FolderFrameReader, runs
@@ -41,10 +40,9 @@ VERIFIED = verified_detector_parameters()
 
 
 @pytest.fixture(scope="module")
-def verified_log(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("verified") / "loops.mcap"
-    annotate_log(LOOPS, out, VERIFIED, AnnotateOptions(verification=DEFAULT_VERIFICATION))
-    return out
+def verified_log(annotated_sample) -> Path:
+    # = annotate_log(LOOPS, out, VERIFIED, AnnotateOptions(verification=DEFAULT_VERIFICATION))
+    return annotated_sample(LOOPS.name)
 
 
 def yaw_by_frame() -> dict[int, float]:

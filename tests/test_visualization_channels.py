@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -52,10 +52,8 @@ def messages(path: Path, topic: str) -> Iterator[tuple[int, bytes]]:
 
 
 @pytest.fixture(scope="module")
-def ros2_output(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    output = tmp_path_factory.mktemp("vis") / "out.mcap"
-    annotate_log(ROS2, output)  # the `annotate` defaults: verification on
-    return output
+def ros2_output(annotated_sample: Callable[..., Path]) -> Path:
+    return annotated_sample(ROS2.name)  # the `annotate` defaults: verification on
 
 
 def test_ros2_channels_have_the_viewers_schemas_and_one_message_per_loop(
