@@ -8,16 +8,19 @@ from __future__ import annotations
 import sys
 import threading
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.sources import open_source, opened
+from doseqslam_logs.sources.base import ChannelInfo
 from doseqslam_logs.sources.handles import HandlePool
 from doseqslam_logs.sources.mcap_source import McapSource
+from doseqslam_logs.sources.poses import default_pose_topic
 from doseqslam_logs.sources.rosbags_source import RosbagsSource
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
@@ -138,3 +141,41 @@ def test_opened_leaves_an_open_source_open_and_closes_what_it_opened() -> None:
         assert sum(1 for _ in source.image_messages(TOPIC)) == 240  # still open
     with opened(log) as mine:
         assert mine.path == log
+
+
+class _Listed:
+    """A source that only lists channels (what `default_pose_topic` looks at)."""
+
+    def __init__(self, *channels: tuple[str, str]) -> None:
+        self._channels = [ChannelInfo(t, kind, "cdr", 1) for t, kind in channels]
+
+    def channels(self) -> list[ChannelInfo]:
+        return self._channels
+
+
+def test_one_rule_picks_the_default_pose_topic() -> None:
+    truth = ("/ground_truth/pose", "geometry_msgs/msg/PoseStamped")
+    odom = ("/odom", "nav_msgs/msg/Odometry")
+    image = ("/camera", "sensor_msgs/msg/Image")
+    assert default_pose_topic(_Listed(image, truth, odom)) == "/odom"  # Odometry first
+    assert default_pose_topic(_Listed(image, truth)) == "/ground_truth/pose"  # else any pose
+    assert default_pose_topic(_Listed(image)) is None
+
+
+@pytest.mark.slow
+def test_a_foxglove_pose_topic_gives_the_metric_poses_as_odometry_does(
+    annotated_sample: Callable[..., Path],
+) -> None:
+    # drive_loops.foxglove.mcap's /odom is a foxglove.PoseInFrame: the motion rule and the
+    # metric poses use it, as they use the ROS 2 sample's nav_msgs/Odometry (59 odometry_pnp,
+    # 5 rotation_only each; the pose rule used to look for nav_msgs/Odometry only: 64
+    # rotation_only), and the same pairs are accepted.
+    def methods(name: str) -> list[tuple[int, int, str]]:
+        log = read_annotations(annotated_sample(name))
+        return [
+            (c.query.index, c.matched.index, c.metric_method) for c in log.reported_loop_closures
+        ]
+
+    foxglove = methods("drive_loops.foxglove.mcap")
+    assert Counter(method for *_, method in foxglove)["odometry_pnp"] > 0
+    assert foxglove == methods("drive_loops.ros2.mcap")

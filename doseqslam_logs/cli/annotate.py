@@ -122,9 +122,10 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--odometry-topic",
         metavar="TOPIC",
-        help="with verification: the pose topic whose odometry gives accepted pairs a metric "
-        "pose when the log has no depth topic (default: the first nav_msgs/Odometry topic; "
-        "'none': no odometry, rotation only)",
+        help="with verification: the pose topic the motion rule reads and whose odometry gives "
+        "accepted pairs a metric pose when the log has no depth topic (default: the first "
+        "nav_msgs/Odometry topic, else the first topic of another pose type; 'none': no "
+        "odometry, images for the motion rule, rotation only)",
     )
     add_parameter_options(parser)
     add_verification_options(parser)

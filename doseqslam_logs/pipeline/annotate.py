@@ -118,9 +118,10 @@ class AnnotateOptions:
     visualization: bool = True
     # The output's chunks: compression and size (`--compression`, `--chunk-size`).
     output_format: OutputFormat = field(default_factory=OutputFormat)
-    # With verification: the pose topic whose odometry gives accepted pairs a metric pose
-    # (pipeline.metric_edges); None the log's first nav_msgs/Odometry topic, "" none
-    # (`--odometry-topic none`).
+    # With verification: the pose topic whose odometry gives the motion rule its evidence and
+    # accepted pairs a metric pose (pipeline.metric_edges); None the log's default pose topic
+    # (sources.poses.default_pose_topic: its first nav_msgs/Odometry topic, else its first
+    # topic of another pose type), "" none (`--odometry-topic none`).
     odometry_topic: str | None = None
 
 

@@ -57,7 +57,7 @@ from ..sources import Log, opened
 from ..sources.base import Source
 from ..sources.depth import DepthFrames, find_depth_topic, stream_depth
 from ..sources.image_header import DEFAULT_MAX_PIXELS
-from ..sources.poses import ODOMETRY, PoseTrack, canonical_type, read_poses
+from ..sources.poses import PoseTrack, default_pose_topic, read_poses
 from ..verification.geometry import FrameFeatures, Intrinsics, Verdict, extract_features
 from ..verification.metric_pose import (
     OPTICAL_TO_BODY,
@@ -386,11 +386,6 @@ def _finished(edges: MetricEdges, start: float) -> MetricEdges:
     return edges
 
 
-def _first_odometry_topic(source: Source) -> str | None:
-    odometry = [c.topic for c in source.channels() if canonical_type(c.message_type) == ODOMETRY]
-    return odometry[0] if odometry else None
-
-
 def read_odometry(
     log: Log, frame_times: FrameTimes, time_source: str, asked: str | None
 ) -> OdometryFrames | None:
@@ -399,7 +394,7 @@ def read_odometry(
     read: the run goes on with the other rungs), "" none. Its PoseTrack is kept (`track`)
     for the trajectory the visualization draws."""
     with opened(log) as source:
-        topic = _first_odometry_topic(source) if asked is None else asked
+        topic = default_pose_topic(source) if asked is None else asked
         if not topic:
             return None
         try:
