@@ -304,8 +304,6 @@ def test_output_file_is_written_atomically(
     ("args", "code", "message"),
     [
         (["--format", "csv"], 3, "not annotated by doseqslam-logs"),
-        (["--format", "g2o"], 2, "--format g2o needs --odometry-topic"),
-        (["--format", "tum"], 2, "--format tum needs --odometry-topic"),
         (["--format", "g2o", "--odometry-topic", "/nope"], 3, "topic '/nope' is not in the log"),
         (
             ["--format", "g2o", "--odometry-topic", "/camera/camera_info"],
@@ -378,3 +376,28 @@ def test_export_log_gives_the_commands_text(annotated: Path, tmp_path, capsys) -
     assert written.summary == result.summary
     with pytest.raises(UsageError, match="unknown export format"):
         export_log(annotated, "kml")
+
+
+@pytest.mark.parametrize("kind", ["tum", "g2o"])
+def test_the_pose_topic_defaults_to_the_one_annotate_picks(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str
+) -> None:
+    # drive_loops.bag: /odom (nav_msgs/Odometry) before /ground_truth/pose (PoseStamped), as
+    # annotate's rule takes it (sources.poses.default_pose_topic); the same file as asked for.
+    given, default = tmp_path / f"given.{kind}", tmp_path / f"default.{kind}"
+    args = [str(annotated), "--format", kind]
+    assert export(capsys, *args, "--odometry-topic", "/odom", "-o", str(given))[0] == 0
+    code, _, err = export(capsys, *args, "-o", str(default))
+    assert code == 0 and default.read_bytes() == given.read_bytes()
+    assert kind == "g2o" or "240 poses of /odom at camera times" in err
+
+
+def test_a_sidecar_has_no_pose_topic_to_default_to(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sidecar = tmp_path / "sidecar.mcap"
+    args = [str(BAG), "-o", str(sidecar), "--no-verify", "--sidecar"]
+    assert main(["annotate", *args]) == 0
+    code, _, err = export(capsys, str(sidecar), "--format", "tum", "-o", str(tmp_path / "t.tum"))
+    assert code == 2 and "no pose topic (nav_msgs/Odometry, " in err and "--poses-from" in err
+    assert not (tmp_path / "t.tum").exists()

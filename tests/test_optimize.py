@@ -416,7 +416,7 @@ def test_a_sidecar_takes_its_poses_from_the_original_log(
         ("missing topic", 3, "topic '/nope' is not in the log"),
         ("not annotated", 3, "not annotated by doseqslam-logs"),
         ("output over the input", 6, "the output would replace the input"),
-        ("no odometry topic", 2, "needs --odometry-topic"),
+        ("no pose topic", 2, "no pose topic (nav_msgs/Odometry, "),
         ("output a device", 6, "refusing to replace it"),
     ],
 )
@@ -439,7 +439,8 @@ def test_errors_exit_with_their_documented_codes(
             str(out),
         ],
         "output over the input": [str(log), "--odometry-topic", "/odom", "-o", str(log)],
-        "no odometry topic": [str(log), "-o", str(out)],
+        # A sidecar holds our channels only: without --poses-from no pose topic to default to.
+        "no pose topic": [str(unverified["sidecar"]), "-o", str(out)],
         "output a device": [str(log), "--odometry-topic", "/odom", "-o", "/dev/null"],
     }[case]
     before = log.read_bytes()

@@ -64,7 +64,9 @@ def add_pose_graph_options(parser: argparse.ArgumentParser) -> None:
         "--odometry-topic",
         metavar="TOPIC",
         help="tum/g2o: the pose topic (nav_msgs/Odometry, PoseStamped, "
-        "PoseWithCovarianceStamped, foxglove.PoseInFrame) placed at the camera times",
+        "PoseWithCovarianceStamped, foxglove.PoseInFrame) placed at the camera times "
+        "(default: the one annotate picks: the first nav_msgs/Odometry topic, else the first "
+        "of another pose type)",
     )
     parser.add_argument(
         "--poses-from",

@@ -24,10 +24,9 @@ import numpy as np
 
 from ..annotations.reader import AnnotatedLog
 from ..annotations.records import ROTATION_ONLY
-from ..errors import UsageError
 from .base import Exporter, ExportOptions, ExportResult
 from .odometry_calibration import OdometryCalibration, calibrate_odometry, calibrated_graph
-from .pose_graph import Edge, PoseGraph, build_pose_graph
+from .pose_graph import Edge, PoseGraph, build_pose_graph, with_pose_topic
 
 _UPPER = np.triu_indices(6)
 _INFORMATION_LINE = (
@@ -103,13 +102,8 @@ def g2o_lines(
     yield f"FIX {graph.vertex_ids[0]}\n"
 
 
-def require_odometry_topic(options: ExportOptions, format_name: str) -> None:
-    if options.odometry_topic is None:
-        raise UsageError(f"--format {format_name} needs --odometry-topic (e.g. /odom)")
-
-
 def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
-    require_odometry_topic(options, "g2o")
+    options = with_pose_topic(options, log.path)
     graph = build_pose_graph(log, options)
     if not options.calibrate_odometry:
         return ExportResult(g2o_lines(graph, options), graph.summary)
@@ -122,7 +116,7 @@ def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
 
 EXPORTER = Exporter(
     "g2o",
-    "pose graph: vertices at camera frames, odometry and loop edges (needs --odometry-topic)",
+    "pose graph: vertices at camera frames, odometry and loop edges",
     True,
     export,
 )

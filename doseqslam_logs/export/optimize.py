@@ -19,14 +19,14 @@ import numpy.typing as npt
 
 from ..annotations.reader import AnnotatedLog, read_annotations
 from ..annotations.records import OUR_TOPIC_PREFIX
-from ..errors import OutputError, UsageError
+from ..errors import OutputError
 from ..sinks.atomic import check_output_path
 from ..sinks.pose_topic import FoxgloveEncoding, PoseStream, write_with_poses
 from ..sources import open_source
 from .base import ExportOptions
 from .gtsam_graph import OptimizedGraph, OptimizeOptions, import_gtsam, optimize_pose_graph
 from .loops import frame_times_ns
-from .pose_graph import PoseGraph, build_pose_graph
+from .pose_graph import PoseGraph, build_pose_graph, with_pose_topic
 
 I64 = npt.NDArray[np.int64]
 
@@ -102,8 +102,7 @@ def optimize_log(
     replace the input or is not a regular file).
     """
     log, output = Path(log), Path(output)
-    if options.odometry_topic is None:
-        raise UsageError("optimize needs --odometry-topic (e.g. /odom)")
+    options = with_pose_topic(options, log)
     check_output_path(output)
     for source in (log, options.poses_log):
         if source is not None and output.exists() and output.resolve() == source.resolve():
@@ -113,6 +112,7 @@ def optimize_log(
     graph = build_pose_graph(annotated, options)
     optimized = optimize_pose_graph(graph, optimize_options)
     poses_log = options.poses_log or log
+    assert options.odometry_topic is not None  # with_pose_topic set it
     frame_id, encoding = odometry_channel(poses_log, options.odometry_topic)
     ids = graph.vertex_ids
     stream = PoseStream(

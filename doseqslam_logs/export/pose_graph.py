@@ -29,7 +29,9 @@ quaternion's vector part, about half the angle; there rotations weigh 4 times le
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -38,8 +40,9 @@ from scipy.spatial.transform import Rotation
 
 from ..annotations.reader import AnnotatedLog
 from ..annotations.records import DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY, LoopClosureRecord
-from ..errors import SourceError
-from ..sources.poses import PoseTrack, read_poses
+from ..errors import SourceError, UsageError
+from ..sources import open_source
+from ..sources.poses import POSE_TYPES, PoseTrack, default_pose_topic, read_poses
 from ..verification.metric_pose import OPTICAL_TO_BODY as OPTICAL_TO_BODY
 from ..verification.metric_pose import MetricPose
 from .base import ExportOptions
@@ -113,6 +116,26 @@ class PoseGraph:
                 "use the default information"
             )
         return text + (f" ({'; '.join(notes)})" if notes else "")
+
+
+def with_pose_topic(options: ExportOptions, log: Path) -> ExportOptions:
+    """`options` with a pose topic: the one given, else the one annotate's rule picks
+    (`default_pose_topic`: the first nav_msgs/Odometry topic, else the first of another pose
+    type) in the log the poses come from (`options.poses_log`, else the annotated log).
+
+    Raises UsageError when that log has no pose topic (a sidecar without --poses-from).
+    """
+    if options.odometry_topic is not None:
+        return options
+    poses_log = options.poses_log or log
+    with open_source(poses_log) as source:
+        topic = default_pose_topic(source)
+    if topic is None:
+        raise UsageError(
+            f"{poses_log}: no pose topic ({', '.join(POSE_TYPES)}): give --odometry-topic, or "
+            "--poses-from the original log for a sidecar"
+        )
+    return dataclasses.replace(options, odometry_topic=topic)
 
 
 def build_pose_graph(log: AnnotatedLog, options: ExportOptions) -> PoseGraph:

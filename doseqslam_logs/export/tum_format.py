@@ -16,8 +16,7 @@ from collections.abc import Iterator
 from ..annotations.reader import AnnotatedLog
 from ..annotations.records import NANOS_PER_SECOND
 from .base import Exporter, ExportOptions, ExportResult
-from .g2o_format import require_odometry_topic
-from .pose_graph import PoseGraph, build_pose_graph
+from .pose_graph import PoseGraph, build_pose_graph, with_pose_topic
 
 HEADER = "# timestamp x y z qx qy qz qw\n"
 
@@ -38,7 +37,7 @@ def tum_lines(graph: PoseGraph) -> Iterator[str]:
 
 
 def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
-    require_odometry_topic(options, "tum")
+    options = with_pose_topic(options, log.path)
     graph = build_pose_graph(log, options)
     summary = f"{len(graph.vertex_ids)} poses of {options.odometry_topic} at camera times"
     if graph.frames_outside_odometry:
@@ -48,7 +47,7 @@ def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
 
 EXPORTER = Exporter(
     "tum",
-    "trajectory 't x y z qx qy qz qw' of a pose topic at camera times (needs --odometry-topic)",
+    "trajectory 't x y z qx qy qz qw' of a pose topic at camera times",
     True,
     export,
 )

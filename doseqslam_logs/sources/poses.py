@@ -130,8 +130,10 @@ def default_pose_topic(source: Source) -> str | None:
     and the trajectory drawn, all of them): the log's first nav_msgs/Odometry topic (what a
     robot itself estimates), else its first topic of another pose type (PoseStamped,
     PoseWithCovarianceStamped, foxglove.PoseInFrame); None without one. 'First' is the order
-    of the log's channels."""
-    topics = [(c.topic, canonical_type(c.message_type)) for c in source.channels()]
+    of the log's channels; our own topics (/doseqslam/..., e.g. the optimized pose) are never
+    picked."""
+    channels = [c for c in source.channels() if not c.topic.startswith("/doseqslam/")]
+    topics = [(c.topic, canonical_type(c.message_type)) for c in channels]
     poses = [(topic, kind) for topic, kind in topics if kind in POSE_TYPES]
     odometry = [topic for topic, kind in poses if kind == ODOMETRY]
     candidates = odometry or [topic for topic, _ in poses]
