@@ -68,7 +68,11 @@ def test_the_papers_detector_annotates_the_samples_to_the_same_bytes(tmp_path) -
 def test_the_commands_defaults_annotate_the_samples_to_the_same_bytes(
     tmp_path, annotated_sample
 ) -> None:
-    logs = [REPO / "sample_logs" / name for name in compare_versions.SAMPLES]
+    # drive_loops.bag and .rosbag2 hold drive_loops.ros2.mcap's data in other containers: the
+    # --no-verify bytes above cover their copying, these the decisions on each kind of drive.
+    copies = {"drive_loops.bag", "drive_loops.rosbag2"}
+    names = [name for name in compare_versions.SAMPLES if name not in copies]
+    logs = [REPO / "sample_logs" / name for name in names]
     ours = lambda log: annotated_sample(log.name)  # noqa: E731 - the run's shared outputs
     results = compare_versions.compare(BYTES_REFERENCE, logs, [], tmp_path, current=ours)
     assert results == [(log.name, True) for log in logs]

@@ -43,6 +43,7 @@ from doseqslam_logs.verification.stage import Cancelled, Verifier, verify_in_thr
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
 TOPIC = "/camera/image/compressed"
 LAPS = 4  # the sample's 240 frames replayed 4 times: seconds of replay, tens of verification
+METRIC_LAPS = 2  # twice: 15 s or more of metric fits after the stage's line
 FILLER_MESSAGES = 300_000  # tiny messages of another topic: seconds of copying when writing
 STOP_BOUND_S = 10.0  # generous: the promise is 2 s, a stage deaf to the signal takes > 20 s
 START_BOUND_S = 900.0  # a safety net only: the wait ends when the line shows or the run ends
@@ -106,9 +107,10 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {
         "laps": repeated_log(folder / "laps.mcap", LAPS),
         "filler": repeated_log(folder / "filler.mcap", 1, FILLER_MESSAGES),
-        # With the camera's CameraInfo: the accepted pairs get metric poses (rotation only).
+        # With the camera's CameraInfo: the accepted pairs get metric poses (rotation only);
+        # METRIC_LAPS: the replay and the checks before the metric stage are most of the test.
         "calibrated": repeated_log(
-            folder / "calibrated.mcap", LAPS, topics=(TOPIC, "/camera/camera_info")
+            folder / "calibrated.mcap", METRIC_LAPS, topics=(TOPIC, "/camera/camera_info")
         ),
         "images": images,
         "gt": gt,
