@@ -35,12 +35,7 @@ import compare_versions  # noqa: E402
 # /odom now gives the motion rule and the metric poses, on purpose; the rest unchanged, and
 # #36's run over one open Source before it changed no byte of any sample).
 BYTES_REFERENCE = "c52ba4e"
-# --no-verify's bytes: untouched by every verification change since.
-PAPER_BYTES_REFERENCE = "b49b5b3"
-# The paper's detector (--no-verify) decides the same loop closures and sequences as before
-# the package layout of issue #18: the records compared, not the bytes around them.
-PAPER_REFERENCE = "4c02724"
-REFERENCE = PAPER_REFERENCE  # the oldest one: the history the test needs
+REFERENCE = BYTES_REFERENCE
 
 
 def _has_reference() -> bool:
@@ -52,24 +47,12 @@ def _has_reference() -> bool:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not _has_reference(), reason=f"no git history with {REFERENCE} here")
-def test_the_papers_detector_annotates_the_samples_to_the_same_bytes(tmp_path) -> None:
-    """Issue #17: the paper stays one flag away, bit for bit in its decisions."""
-    logs = [REPO / "sample_logs" / name for name in compare_versions.SAMPLES]
-    extra = ["--no-verify"]
-    decisions = compare_versions.same_decisions
-    same = compare_versions.compare(PAPER_REFERENCE, logs, extra, tmp_path, decisions)
-    assert same == [(log.name, True) for log in logs]
-    results = compare_versions.compare(PAPER_BYTES_REFERENCE, logs, extra, tmp_path)
-    assert results == [(log.name, True) for log in logs]
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not _has_reference(), reason=f"no git history with {REFERENCE} here")
 def test_the_commands_defaults_annotate_the_samples_to_the_same_bytes(
     tmp_path, annotated_sample
 ) -> None:
     # drive_loops.bag and .rosbag2 hold drive_loops.ros2.mcap's data in other containers: the
-    # --no-verify bytes above cover their copying, these the decisions on each kind of drive.
+    # --no-verify bytes (test_paper_outputs_unchanged.py) cover their copying, these the
+    # decisions on each kind of drive.
     copies = {"drive_loops.bag", "drive_loops.rosbag2"}
     names = [name for name in compare_versions.SAMPLES if name not in copies]
     logs = [REPO / "sample_logs" / name for name in names]
