@@ -118,6 +118,7 @@ def test_impossible_checks_are_named_not_counted_as_rejections(tmp_path, capsys)
     assert json.loads(text)["feature_poor"]["checks_too_few_features"] == 80
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "log", ["drive_loops.ros2.mcap", "drive_parked.ros2.mcap", "drive_varrate.bag"]
 )
@@ -290,6 +291,7 @@ def test_stretch_contrast_maps_the_span_onto_0_255() -> None:
     assert np.all(np.diff(stretched.ravel().astype(int)) >= 0)
 
 
+@pytest.mark.slow
 def test_a_dark_full_size_drive_verifies_as_in_daylight(tmp_path, capsys) -> None:
     """drive_loops at its own 256x192, pixels x0.25 (a night drive): ORB's fixed FAST
     threshold found too little (0 loop closures and the warning, docs/results.md); the

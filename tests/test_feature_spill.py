@@ -100,6 +100,7 @@ def test_the_replay_keeps_each_frames_features_as_verification_extracts_them(wor
         assert max(counts) > 50
 
 
+@pytest.mark.slow
 def test_annotate_verifies_without_decoding_a_frame_again(tmp_path, monkeypatch) -> None:
     """With the replay's features, verification reads no frame of the log (before: every
     frame it checked was re-read and its features extracted again)."""

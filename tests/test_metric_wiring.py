@@ -304,6 +304,7 @@ def test_a_depth_image_of_another_size_than_the_camera_is_not_used(loops: Annota
     assert pose.reason.startswith("depth_pnp: depth image 128x96, the camera's 256x192")
 
 
+@pytest.mark.slow
 def test_metric_poses_are_the_same_on_one_thread_as_on_two(
     loops: AnnotatedLog, tmp_path: Path
 ) -> None:

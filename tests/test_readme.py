@@ -281,6 +281,7 @@ def check_section(
             assert actual == expected, f"$ {command.line}"
 
 
+@pytest.mark.slow
 def test_quick_start_blocks(shell: Shell) -> None:
     check_section(shell, "Quick start", 2, section("Quick start", README, level="##"), README)
 
@@ -323,6 +324,7 @@ def test_evaluate_annotated_log_blocks(shell: Shell) -> None:
         assert (shell.cwd / "docs" / "images" / name).is_file()
 
 
+@pytest.mark.slow
 def test_diff_blocks(shell: Shell) -> None:
     check_section(shell, "`diff A.mcap B.mcap`", 3)
 

@@ -91,6 +91,7 @@ def test_frame_refs_round_trip(index: int, log_time: int, stamp: int | None) -> 
     assert times.detector_times_ns("log").tolist() == [log_time]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("verification", [None, DEFAULT_VERIFICATION])
 def test_run_metadata_reads_back_the_entries_it_wrote(tmp_path: Path, verification) -> None:
     out = tmp_path / "out.mcap"

@@ -230,7 +230,7 @@ WRITE = "writing the output"
         ("replay", signal.SIGINT, "laps", ["--no-verify"]),
         ("verify", signal.SIGTERM, "laps", []),
         ("verify", signal.SIGINT, "laps", []),
-        ("metric", signal.SIGTERM, "calibrated", []),
+        pytest.param("metric", signal.SIGTERM, "calibrated", [], marks=pytest.mark.slow),
         ("write", signal.SIGTERM, "filler", ["--no-verify"]),
     ],
 )

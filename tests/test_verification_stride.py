@@ -103,6 +103,7 @@ def test_strided_acceptances_are_true_places(strided_log) -> None:
     assert len(q) >= 10 and gt.are_true(q, m, 0).all()
 
 
+@pytest.mark.slow
 def test_strided_search_checks_far_fewer_pairs_than_the_exhaustive_one(tmp_path) -> None:
     """Exhaustive: up to 2r + 1 = 51 frames per checked candidate; coarse to fine with s = 4:
     at most 13 grid frames and the match, then 6 fine, and 5 while an offset is tracked."""
