@@ -60,10 +60,7 @@ def documented_graph() -> dict[str, set[str]]:
     assert rows, "docs/architecture.md: the table of packages is gone"
     graph = {}
     for package, cell in rows:
-        if cell.strip() == "everything above":
-            graph[package] = set(names) - {package}
-        else:
-            graph[package] = {word for word in re.findall(r"\w+", cell) if word in names}
+        graph[package] = {word for word in re.findall(r"\w+", cell) if word in names}
     return graph
 
 

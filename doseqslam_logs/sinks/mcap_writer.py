@@ -184,17 +184,13 @@ def detect_input(input_path: str | os.PathLike[str]) -> InputLog:
     if path.is_dir():
         return _detect_rosbag2_folder(path)
     try:
-        stream = path.open("rb")
-    except OSError as exc:
-        raise SourceError(f"{path}: cannot open the log: {exc.strerror or exc}") from exc
-    with stream:
-        try:
+        with path.open("rb") as stream:
             head = stream.read(len(SQLITE_MAGIC))
-        except OSError as exc:
-            raise SourceError(f"{path}: cannot open the log: {exc.strerror or exc}") from exc
-        if head.startswith(MCAP_MAGIC):
-            stream.seek(0)
-            return InputLog("mcap", path, _mcap_profile_of(path, stream))
+            if head.startswith(MCAP_MAGIC):  # its profile from the same open: one open, not two
+                stream.seek(0)
+                return InputLog("mcap", path, _mcap_profile_of(path, stream))
+    except OSError as exc:  # the profile's read errors are SourceErrors (reading_errors)
+        raise SourceError(f"{path}: cannot open the log: {exc.strerror or exc}") from exc
     if head.startswith(ROS1_MAGIC):
         return InputLog("ros1-bag", path, "ros1")
     if head.startswith(SQLITE_MAGIC):

@@ -536,10 +536,9 @@ class McapSource:
         if start_ns is not None and end_ns is not None and start_ns >= end_ns:
             return
         try:
-            with self._handles.borrowed() as file:
-                for schema, channel, message in self._records(file, topic, start_ns, end_ns):
-                    if schema is not None and is_image_type(schema.name):
-                        yield self._to_image(schema, channel, message)
+            for schema, channel, message in self._lent_records(topic, start_ns, end_ns):
+                if schema is not None and is_image_type(schema.name):
+                    yield self._to_image(schema, channel, message)
         except DoseqslamError:
             raise
         except Exception as exc:
@@ -555,8 +554,8 @@ class McapSource:
 
         Raises SourceError (while iterating) for a damaged file.
         """
-        with self._reading(topic), self._handles.borrowed() as file:
-            for _, _, message in self._records(file, topic, start_ns, end_ns):
+        with self._reading(topic):
+            for _, _, message in self._lent_records(topic, start_ns, end_ns):
                 yield message.log_time, bytes(message.data)
 
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
@@ -565,8 +564,8 @@ class McapSource:
         Raises SourceError (while iterating) for a damaged file or an unsupported encoding.
         """
         self._check_complete()
-        with self._reading(topic), self._handles.borrowed() as file:
-            for schema, channel, message in self._records(file, topic, None, None):
+        with self._reading(topic):
+            for schema, channel, message in self._lent_records(topic, None, None):
                 if schema is None:
                     raise SourceError(f"{self.path}: topic {topic!r} has no schema")
                 decoded = self._deserializer(schema, channel)(message.data)
@@ -583,6 +582,14 @@ class McapSource:
             raise SourceError(
                 f"{self.path}: cannot read the messages of {topic} ({describe_read_error(exc)})"
             ) from exc
+
+    def _lent_records(
+        self, topic: str, start_ns: int | None, end_ns: int | None
+    ) -> Iterator[_Record]:
+        """`_records` on a handle of their own, lent by the pool and given back when they end
+        (or are dropped)."""
+        with self._handles.borrowed() as file:
+            yield from self._records(file, topic, start_ns, end_ns)
 
     def _records(
         self, file: IO[bytes], topic: str, start_ns: int | None, end_ns: int | None

@@ -150,7 +150,7 @@ class RosbagsSource:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._reader = _open_reader(self.path)  # its connections describe the bag
-        # A rosbags reader seeks one file: each iteration borrows its own (module handles).
+        # A rosbags reader seeks one file: each iteration borrows its own (sources.handles).
         self._readers = HandlePool(lambda: _open_reader(self.path), _close_reader, self._reader)
 
     @property
@@ -211,13 +211,10 @@ class RosbagsSource:
             return
         try:
             deserializers = {c.msgtype: self._deserializer(c.msgtype) for c in connections}
-            with self._readers.borrowed() as reader:
-                own = _same_connections(reader, connections)
-                messages = reader.messages(connections=own, start=start_ns, stop=end_ns)
-                for connection, log_time, payload in messages:
-                    record = RecordInfo(connection.topic, log_time)
-                    deserialize = deserializers[connection.msgtype]
-                    yield image_from_payload(connection.msgtype, payload, deserialize, record)
+            for connection, log_time, payload in self._messages(connections, start_ns, end_ns):
+                record = RecordInfo(connection.topic, log_time)
+                deserialize = deserializers[connection.msgtype]
+                yield image_from_payload(connection.msgtype, payload, deserialize, record)
         except DoseqslamError:
             raise
         except Exception as exc:
@@ -236,10 +233,8 @@ class RosbagsSource:
         connections = [c for c in self._reader.connections if c.topic == topic]
         if not connections:  # rosbags would yield every message of the bag
             return
-        with self._reading(topic), self._readers.borrowed() as reader:
-            own = _same_connections(reader, connections)
-            messages = reader.messages(connections=own, start=start_ns, stop=end_ns)
-            for _, log_time, payload in messages:
+        with self._reading(topic):
+            for _, log_time, payload in self._messages(connections, start_ns, end_ns):
                 yield log_time, bytes(payload)
 
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
@@ -250,12 +245,19 @@ class RosbagsSource:
         connections = [c for c in self._reader.connections if c.topic == topic]
         if not connections:  # rosbags would yield every message of the bag
             return
-        with self._reading(topic), self._readers.borrowed() as reader:
-            for connection, log_time, payload in reader.messages(
-                connections=_same_connections(reader, connections)
-            ):
+        with self._reading(topic):
+            for connection, log_time, payload in self._messages(connections, None, None):
                 decoded = self._reader.deserialize(payload, connection.msgtype)
                 yield DecodedMessage(log_time, connection.msgtype, decoded)
+
+    def _messages(
+        self, connections: list[Connection], start_ns: int | None, end_ns: int | None
+    ) -> Iterator[tuple[Connection, int, bytes]]:
+        """rosbags' messages of `connections` in [start_ns, end_ns), through a reader of their
+        own, lent by the pool and given back when they end (or are dropped)."""
+        with self._readers.borrowed() as reader:
+            own = _same_connections(reader, connections)
+            yield from reader.messages(connections=own, start=start_ns, stop=end_ns)
 
     @contextlib.contextmanager
     def _reading(self, topic: str) -> Iterator[None]:
