@@ -17,6 +17,7 @@ class ExitCode(IntEnum):
     # --on-error fail was asked for; or not a single image of the camera topic could be decoded.
     BAD_IMAGE = 5
     OUTPUT_ERROR = 6  # the output could not be written
+    REGRESSION = 7  # `diff --fail-on`: B regressed against A by a rule given
     INTERNAL = 70  # a bug: please report it (run with --debug for the traceback)
     INTERRUPTED = 130  # SIGINT (Ctrl-C): 128 + 2
     TERMINATED = 143  # SIGTERM: 128 + 15

@@ -1,9 +1,11 @@
-"""`doseqslam-logs diff A.mcap B.mcap`: compare the loop closures of two annotated logs.
+"""`doseqslam-logs diff A B`: compare the loop closures of two annotated logs, or of two batch
+output folders log by log; with ground truth, say which differing pairs are true.
 
 Exit codes follow diff(1): 0 when the reported loop closures are the same (parameter and
 metadata differences alone are informational), 1 when they differ, 2 when the comparison
 cannot be made: bad arguments, and also an input that is missing, unreadable or not annotated
-(exit 3 in the other commands).
+(exit 3 in the other commands). With --fail-on, 7 when a rule fails and 0 otherwise (a
+difference that breaks no rule passes the gate).
 """
 
 from __future__ import annotations
@@ -12,23 +14,38 @@ import argparse
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 from ..errors import ExitCode, SourceError, UsageError
-from ..evaluation.diff import diff_logs
+from ..evaluation.diff_gate import Gate, GateFigures, parse_gate
+from ..evaluation.log_run import LogEvaluationOptions, check_options
+
+_TRUTH_FLAGS = {
+    "gt_variable": "--gt-variable",
+    "radius": "--radius",
+    "max_heading": "--max-heading",
+    "min_travel": "--min-travel",
+    "source": "--source",
+}
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "diff",
-        help="compare the loop closures of two annotated logs of the same source",
+        help="compare the loop closures of two annotated logs (or two batch folders) of the "
+        "same sources",
         description="Pair the reported loop closures of A and B by query time and sort them into "
         "common, only in A, only in B and same query with a different match; list the "
-        "parameter and metadata differences and changed verification verdicts. Exit 0 when "
-        "the reported loop closures are the same, 1 when they differ, 2 when the logs cannot "
-        "be compared (missing, unreadable or not annotated).",
+        "parameter and metadata differences and changed verification verdicts. A and B may be "
+        "two batch output folders (or their manifest.jsonl): their logs are matched by source "
+        "(sha256, else name) and compared one by one. With ground truth (--gt or --gt-topic, "
+        "as evaluate takes it) each version is scored as evaluate scores it and every differing "
+        "pair is labelled true or false. Exit 0 when the reported loop closures are the same, "
+        "1 when they differ, 2 when they cannot be compared (missing, unreadable or not "
+        "annotated); with --fail-on, 7 when a rule fails, else 0.",
     )
-    parser.add_argument("a", type=Path, metavar="A.mcap", help="annotated log (or sidecar)")
-    parser.add_argument("b", type=Path, metavar="B.mcap", help="annotated log (or sidecar)")
+    parser.add_argument("a", type=Path, metavar="A", help="annotated log (or sidecar), or folder")
+    parser.add_argument("b", type=Path, metavar="B", help="annotated log (or sidecar), or folder")
     parser.add_argument(
         "--tolerance-ms",
         type=float,
@@ -38,7 +55,47 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "below half the frame interval",
     )
     parser.add_argument("--json", action="store_true", help="print the full lists as JSON")
+    _add_truth_options(parser)
+    parser.add_argument(
+        "--fail-on",
+        metavar="RULES",
+        help="exit 7 when B regresses against A: comma-separated rules, each NAME or "
+        "NAME=LIMIT (default limit 0): new-false, lost-true, coverage-drop (percentage "
+        "points; these three need ground truth), new-pairs, lost-pairs",
+    )
+    parser.add_argument(
+        "--report",
+        type=Path,
+        metavar="REPORT.md",
+        help="also write a markdown report with a picture of what changed per log and the "
+        "trajectories of the logs that changed most (beside it; needs matplotlib)",
+    )
     parser.set_defaults(run=run)
+
+
+def _add_truth_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group(
+        "ground truth", "as evaluate OUT.mcap takes it: --gt FILE, or --gt-topic with --radius"
+    )
+    group.add_argument("--gt", type=Path, metavar="GTFILE", help="ground-truth matrix (one log)")
+    group.add_argument("--gt-variable", metavar="NAME", help="variable inside a .mat/.npz")
+    group.add_argument("--gt-topic", metavar="TOPIC", help="ground truth from this pose topic")
+    group.add_argument("--radius", type=float, metavar="R", help="revisit radius (m)")
+    group.add_argument("--max-heading", type=float, metavar="DEG", help="max yaw difference")
+    group.add_argument("--min-travel", type=float, metavar="M", help="min travel in between (m)")
+    group.add_argument(
+        "--tolerance",
+        type=int,
+        default=0,
+        metavar="K",
+        help="count a match within +-K frames of a ground-truth cell (default 0)",
+    )
+    group.add_argument(
+        "--source",
+        type=Path,
+        metavar="LOG",
+        help="the log A and B were annotated from, when they are sidecars",
+    )
 
 
 def tolerance_ns(milliseconds: float) -> int:
@@ -48,15 +105,85 @@ def tolerance_ns(milliseconds: float) -> int:
     return round(milliseconds * 1_000_000)
 
 
+def truth_options(args: argparse.Namespace, folders: bool) -> Any:
+    """The ground-truth options for both sides (a fleet_diff.TruthOptions), or None."""
+    from ..evaluation.fleet_diff import TruthOptions
+
+    if args.tolerance < 0:
+        raise UsageError(f"--tolerance must be >= 0, got {args.tolerance}")
+    if args.gt is None and args.gt_topic is None:
+        given = [flag for name, flag in _TRUTH_FLAGS.items() if getattr(args, name) is not None]
+        if given:
+            raise UsageError(f"{', '.join(given)}: only with --gt or --gt-topic")
+        return None
+    if folders and args.gt is not None:
+        raise UsageError("--gt: one matrix is one log's; compare folders with --gt-topic")
+    if folders and args.source is not None:
+        raise UsageError("--source: batch folders hold full copies; not with folders")
+    options = LogEvaluationOptions(
+        gt=args.gt,
+        gt_variable=args.gt_variable,
+        gt_topic=args.gt_topic,
+        radius=args.radius,
+        max_heading=args.max_heading,
+        min_travel=args.min_travel,
+        tolerance=args.tolerance,
+        source=args.source,
+    )
+    check_options(options)
+    return TruthOptions(options, options, args.tolerance)
+
+
 def run(args: argparse.Namespace) -> int:
+    from ..evaluation import fleet_diff
+
     tolerance = tolerance_ns(args.tolerance_ms)
+    folders = args.a.is_dir() or args.b.is_dir() or _is_manifest(args.a) or _is_manifest(args.b)
+    truth = truth_options(args, folders)
+    gate = _gate(args.fail_on, truth is not None)
     try:
         # A missing or non-annotated input is a usage error here (exit 2, like diff(1)).
-        result = diff_logs(args.a, args.b, tolerance)
+        if folders:
+            result: Any = fleet_diff.diff_folders(args.a, args.b, tolerance, truth)
+        else:
+            result = fleet_diff.compare(args.a, args.b, tolerance, truth)
     except SourceError as exc:
         raise UsageError(str(exc)) from exc
-    if args.json:
-        print(json.dumps(result.to_json_dict(), indent=2))
-    else:
-        print(result.format_table())
+    figures: GateFigures = result.figures()
+    document = result.to_json_dict()
+    if gate is not None:
+        document["gate"] = gate.to_json_dict(figures)
+    if args.report is not None:
+        from ..evaluation.diff_report import write_report
+
+        document["report"] = [str(p) for p in write_report(args.report, result, gate)]
+    print(json.dumps(document, indent=2) if args.json else _text(result, gate, figures, document))
+    if gate is not None:
+        return int(ExitCode.REGRESSION if gate.failures(figures) else ExitCode.OK)
     return int(ExitCode.OK if result.equal else ExitCode.DIFFERENT)
+
+
+def _is_manifest(path: Path) -> bool:
+    return path.suffix == ".jsonl"
+
+
+def _gate(rules: str | None, ground_truth: bool) -> Gate | None:
+    if rules is None:
+        return None
+    gate = parse_gate(rules)
+    if gate.needs_ground_truth and not ground_truth:
+        raise UsageError(
+            f"--fail-on {', '.join(gate.needs_ground_truth)}: needs ground truth "
+            "(--gt or --gt-topic)"
+        )
+    return gate
+
+
+def _text(result: Any, gate: Gate | None, figures: GateFigures, document: dict[str, Any]) -> str:
+    lines = [result.format_table()]
+    if gate is not None:
+        failed = gate.failures(figures)
+        verdict = "FAILED: " + "; ".join(failed) + " (exit 7)" if failed else "passed (exit 0)"
+        lines.append(f"gate {', '.join(gate.limits)}: {verdict}")
+    lines += [f"wrote {path}" for path in document.get("report", [])]
+    return "\n".join(lines)

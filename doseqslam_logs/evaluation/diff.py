@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,8 @@ FIRST_METADATA = (
     "source_file",
 )
 SHOWN_PAIRS = 5  # differing pairs listed per class in the table
+# (side "a" or "b", pair) -> a label shown beside the pair ("true", "false").
+Labeller = Callable[[str, "Pair"], str]
 
 
 @dataclass(frozen=True, order=True)
@@ -160,15 +162,16 @@ class LogDiff:
             "metadata_differences": [d.to_json_dict() for d in self.metadata_differences],
         }
 
-    def format_table(self, shown: int = SHOWN_PAIRS) -> str:
-        """The human report: logs, counts per class, differences, the first differing pairs."""
+    def format_table(self, shown: int = SHOWN_PAIRS, label: Labeller | None = None) -> str:
+        """The human report: logs, counts per class, differences, the first differing pairs
+        (with `label(side, pair)`, "a" or "b", in a column of their own: "true", "false")."""
         lines = [_log_line("A", self.a), _log_line("B", self.b)]
         lines += [f"warning: {w}" for w in self.warnings]
         lines += ["", *_counts_lines(self)]
         lines += ["", _verdicts_line(self.verdicts)]
         lines += _differences_lines("parameters", "name", self.parameter_differences)
         lines += _differences_lines("metadata", "key", self.metadata_differences)
-        lines += _pair_lines(self.reported, shown)
+        lines += _pair_lines(self.reported, shown, label)
         verdict = "the same" if self.equal else "different"
         lines += [
             "",
@@ -472,26 +475,34 @@ def _frame(time: int, index: int) -> str:
     return f"{_seconds(time)} (#{index})"
 
 
-def _pair_lines(matching: Matching, shown: int) -> list[str]:
+def _pair_lines(matching: Matching, shown: int, label: Labeller | None) -> list[str]:
     lines: list[str] = []
-    for name, pairs in (("only in A", matching.only_a), ("only in B", matching.only_b)):
+    truth = [] if label is None else ["ground truth"]
+    sides = (("only in A", "a", matching.only_a), ("only in B", "b", matching.only_b))
+    for name, side, pairs in sides:
         if pairs:
             lines += ["", f"{name} (first {min(shown, len(pairs))} of {len(pairs)}):"]
-            rows = [["query time (index)", "match time (index)"]]
+            rows = [["query time (index)", "match time (index)", *truth]]
             rows += [
-                [_frame(p.query_time_ns, p.query_index), _frame(p.match_time_ns, p.match_index)]
+                [
+                    _frame(p.query_time_ns, p.query_index),
+                    _frame(p.match_time_ns, p.match_index),
+                    *([] if label is None else [label(side, p)]),
+                ]
                 for p in pairs[:shown]
             ]
             lines += _table(rows)
     if matching.different_match:
         count = len(matching.different_match)
         lines += ["", f"different match (first {min(shown, count)} of {count}):"]
-        rows = [["query time (index A, B)", "match in A", "match in B"]]
+        both = [] if label is None else ["A is", "B is"]
+        rows = [["query time (index A, B)", "match in A", "match in B", *both]]
         rows += [
             [
                 f"{_seconds(x.query_time_ns)} (#{x.query_index}, #{y.query_index})",
                 _frame(x.match_time_ns, x.match_index),
                 _frame(y.match_time_ns, y.match_index),
+                *([] if label is None else [label("a", x), label("b", y)]),
             ]
             for x, y in matching.different_match[:shown]
         ]

@@ -25,6 +25,7 @@ from ..sinks.atomic import check_output_path
 from ..sources import open_source
 from ..sources.poses import PoseTrack, read_poses
 from .groundtruth import GroundTruth, load_ground_truth
+from .metrics import Evaluation
 from .pose_ground_truth import (
     FramePoses,
     LoopCriteria,
@@ -58,6 +59,13 @@ class LogReport:
     ground_truth: dict[str, Any]  # what the ground truth was (kind, file or topic, criteria)
     result: LogEvaluation
     plots: list[Path]
+    truth: GroundTruth  # what `result` was scored against (diff labels pairs with it)
+
+    @property
+    def reported(self) -> Evaluation:
+        """The figures of the loop closures the run reports: the verified ones when it
+        verified its pairs, else every accepted candidate."""
+        return self.result.verified or self.result.raw
 
     def format_report(self) -> str:
         """The `evaluate OUT.mcap` report: headline, figures, pictures written."""
@@ -79,7 +87,7 @@ def evaluate_log(log: str | Path, options: LogEvaluationOptions | None = None) -
     plots, ...), SourceError (not an annotated log), GroundTruthError.
     """
     options = options or LogEvaluationOptions()
-    _check(options)
+    check_options(options)
     plots = _plots_module() if options.plot is not None else None  # fail before the work
     annotated = read_annotations(log)
     inputs = _Inputs(options, annotated)
@@ -88,7 +96,7 @@ def evaluate_log(log: str | Path, options: LogEvaluationOptions | None = None) -
     if gt_info["kind"] == "poses":
         result = _renamed(result, gt.source)
     written = [] if plots is None else _draw(plots, inputs, gt, result)
-    return LogReport(annotated, gt_info, result, written)
+    return LogReport(annotated, gt_info, result, written, gt)
 
 
 # The pose ground truth's criteria, by option name, as the command spells them.
@@ -99,11 +107,11 @@ _POSE_CRITERIA = {
 }
 
 
-def _check(options: LogEvaluationOptions) -> None:
+def check_options(options: LogEvaluationOptions) -> None:
     """Raises UsageError for options that do not go together (named as the command spells
     them: the library's names are the same, with underscores)."""
     if (options.gt is None) == (options.gt_topic is None):
-        raise UsageError("evaluate OUT.mcap needs exactly one of --gt GTFILE or --gt-topic TOPIC")
+        raise UsageError("give exactly one of --gt GTFILE or --gt-topic TOPIC")
     if options.gt_topic is not None and options.radius is None:
         raise UsageError("--gt-topic needs --radius R (metres)")
     criteria = [flag for name, flag in _POSE_CRITERIA.items() if getattr(options, name) is not None]
