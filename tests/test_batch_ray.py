@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 from pathlib import Path
 
 import pytest
-from test_batch import END, SAMPLES, run_batch_cli, truncated_copy
+from test_batch import SAMPLES, T0_NS, run_batch_cli, truncated_copy
 
 from doseqslam_logs.batch.manifest import read_entries
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.errors import ExitCode
 
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 
 ray = pytest.importorskip("ray")
+
+# Past the samples' first revisit (60.5 s), so that the outputs hold loop closures to diff.
+END = str(T0_NS + 65 * 10**9)
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +32,7 @@ def local_ray():
     signal.signal(signal.SIGTERM, sigterm)
 
 
-def test_ray_outputs_are_byte_identical_to_the_local_engine(local_ray, tmp_path) -> None:
+def test_ray_outputs_are_byte_identical_to_the_local_engine(local_ray, tmp_path, capsys) -> None:
     logs = tmp_path / "logs"
     (logs / "sub").mkdir(parents=True)
     shutil.copy(SAMPLES / "drive_loops.ros2.mcap", logs)
@@ -45,6 +51,17 @@ def test_ray_outputs_are_byte_identical_to_the_local_engine(local_ray, tmp_path)
     for name in outputs:
         ray_bytes = (tmp_path / "ray" / name).read_bytes()
         assert ray_bytes == (tmp_path / "local" / name).read_bytes(), name
+    # diff of the two manifests (issue #39): every log matched by source and identical.
+    code = main(["diff", *(str(tmp_path / s / "manifest.jsonl") for s in ("local", "ray")),
+                 "--json"])  # fmt: skip
+    fleet = json.loads(capsys.readouterr().out)
+    assert code == ExitCode.OK and fleet["only_a"] == fleet["only_b"] == []
+    assert sorted((row["name"], row["state"]) for row in fleet["logs"]) == [
+        ("broken.mcap", "failed in both"),
+        ("drive_loops.ros2.mcap", "compared"),
+        ("drive_loops.rosbag2", "compared"),
+    ]
+    assert fleet["totals"]["common"] > 0 and fleet["totals"]["changed_logs"] == 0
 
     entries = list(read_entries(tmp_path / "ray" / "manifest.jsonl"))
     assert sorted((Path(e.input).name, e.status, e.engine) for e in entries) == [

@@ -63,7 +63,10 @@ def test_each_side_is_scored_as_evaluate_scores_it_and_pairs_are_labelled(versio
     assert document["a"]["fp"] == 0 and document["b"]["fp"] > 0  # the parked camera
     gt = load_ground_truth(gt_file)
     labelled = document["only_b"] + [pair["b"] for pair in document["different_match"]]
-    assert labelled and document["new_false"] == sum(not p["true"] for p in labelled) > 0
+    turned_false = sum(p["a"]["true"] and not p["b"]["true"] for p in document["different_match"])
+    assert document["new_false"] == sum(not p["true"] for p in document["only_b"]) + turned_false
+    assert document["lost_true"] == sum(p["true"] for p in document["only_a"]) + turned_false
+    assert labelled and document["new_false"] > 0
     for pair in labelled + document["only_a"]:
         assert pair["true"] == gt.is_true(pair["query_index"], pair["match_index"])
     assert document["b"]["only_here"] == document["only_b"]
@@ -142,6 +145,13 @@ def test_the_report_has_the_table_and_its_pictures(versions, capsys, tmp_path):
     for name in pictures:
         assert f"]({name})" in text
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_report_that_cannot_be_written_is_refused_before_the_work(versions, capsys, tmp_path):
+    report = tmp_path / "no-such-folder" / "report.md"
+    code, out, err = run(capsys, versions["a"], versions["b"], *POSES, "--report", report)
+    assert code == ExitCode.OUTPUT_ERROR and out == ""
+    assert err.strip().endswith(f"{report}: cannot create the output: no folder {report.parent}")
 
 
 @pytest.mark.parametrize(

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -141,6 +142,10 @@ def run(args: argparse.Namespace) -> int:
     folders = args.a.is_dir() or args.b.is_dir() or _is_manifest(args.a) or _is_manifest(args.b)
     truth = truth_options(args, folders)
     gate = _gate(args.fail_on, truth is not None)
+    if args.report is not None:
+        from ..evaluation.diff_report import check_report
+
+        check_report(args.report)
     try:
         # A missing or non-annotated input is a usage error here (exit 2, like diff(1)).
         if folders:
@@ -181,7 +186,8 @@ def _gate(rules: str | None, ground_truth: bool) -> Gate | None:
 
 def _text(result: Any, gate: Gate | None, figures: GateFigures, document: dict[str, Any]) -> str:
     lines = [result.format_table()]
-    if gate is not None:
+    if gate is not None:  # the gate's verdict is the exit code, not the result line's
+        lines = [re.sub(r" \(exit [01]\)$", "", lines[0], flags=re.MULTILINE)]
         failed = gate.failures(figures)
         verdict = "FAILED: " + "; ".join(failed) + " (exit 7)" if failed else "passed (exit 0)"
         lines.append(f"gate {', '.join(gate.limits)}: {verdict}")

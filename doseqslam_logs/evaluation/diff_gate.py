@@ -3,8 +3,9 @@
 RULES is a comma-separated list of `name` or `name=LIMIT`; a rule fails when B's figure
 exceeds its limit (default 0). A is the reference, B the candidate version:
 
-- `new-false`: false loop closures B reports that A does not (needs ground truth);
-- `lost-true`: true loop closures A reports that B does not (needs ground truth);
+- `new-false`: false loop closures B reports that A does not (needs ground truth); a query
+  both report with different matches counts when A's match was true and B's is false;
+- `lost-true`: true loop closures A reports that B does not, counted the same way;
 - `coverage-drop`: percentage points of revisit coverage B loses against A, in any window
   length (needs ground truth);
 - `new-pairs`, `lost-pairs`: loop closures only B (only A) reports, a different match

@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..annotations.reader import read_annotations
-from ..errors import SourceError, UsageError
+from ..errors import OutputError, SourceError, UsageError
 from ..sinks.atomic import atomic_output, check_output_path
 from ..sources import open_source
 from ..sources.poses import default_pose_topic, read_poses
@@ -31,14 +31,10 @@ DPI = 110
 
 def write_report(path: Path, result: FleetDiff | Comparison, gate: Gate | None) -> list[Path]:
     """Write REPORT.md and its pictures (REPORT-changes.png, REPORT-trajectory-N.png)
-    beside it; returns the files written. Raises UsageError without matplotlib."""
-    try:
-        from matplotlib.figure import Figure
-    except ImportError as exc:
-        raise UsageError(
-            f"--report needs matplotlib ({exc}): pip install 'doseqslam-logs[plot]'"
-        ) from exc
-    check_output_path(path)
+    beside it; returns the files written. Raises as check_report does."""
+    check_report(path)
+    from matplotlib.figure import Figure
+
     fleet = result if isinstance(result, FleetDiff) else _as_fleet(result)
     stem = path.with_suffix("")
     written = [_save(_changes_figure(Figure, fleet), Path(f"{stem}-changes.png"))]
@@ -52,6 +48,20 @@ def write_report(path: Path, result: FleetDiff | Comparison, gate: Gate | None) 
     with atomic_output(path) as stream:
         stream.write(text.encode())
     return [path, *written]
+
+
+def check_report(path: Path) -> None:
+    """Before the diff's work: UsageError without matplotlib, OutputError when the report
+    cannot be written (its folder missing, the name taken by a folder, ...)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as exc:
+        raise UsageError(
+            f"--report needs matplotlib ({exc}): pip install 'doseqslam-logs[plot]'"
+        ) from exc
+    check_output_path(path)
+    if not path.absolute().parent.is_dir():
+        raise OutputError(f"{path}: cannot create the output: no folder {path.parent}")
 
 
 def _as_fleet(comparison: Comparison) -> FleetDiff:

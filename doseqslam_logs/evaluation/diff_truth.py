@@ -78,15 +78,20 @@ class TruthDiff:
             return self.only_a + [a for a, _ in self.different_match]
         return self.only_b + [b for _, b in self.different_match]
 
+    def _turned_false(self) -> int:
+        """Queries both report whose true match became a false one in B."""
+        return sum(a.true and not b.true for a, b in self.different_match)
+
     @property
     def new_false(self) -> int:
-        """False pairs B reports that A does not."""
-        return sum(not p.true for p in self.side_pairs("b"))
+        """False pairs B reports that A does not: only in B, or a true match of A's made false
+        (a different match that stays false, or stays true, is no change at that query)."""
+        return sum(not p.true for p in self.only_b) + self._turned_false()
 
     @property
     def lost_true(self) -> int:
-        """True pairs A reports that B does not."""
-        return sum(p.true for p in self.side_pairs("a"))
+        """True pairs A reports that B does not: only in A, or made false by B's match."""
+        return sum(p.true for p in self.only_a) + self._turned_false()
 
     def label(self, side: str, pair: Pair) -> str:
         """ "true" or "false" for a differing pair of that side (the very object `diff`

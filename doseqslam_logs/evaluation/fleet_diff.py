@@ -214,6 +214,9 @@ def _run_json(run: BatchRun) -> dict[str, Any]:
     return {"output": None if run.output is None else str(run.output), "error": run.error}
 
 
+_SAME_STATES = ("compared", "failed in both")  # a log that failed in both runs is no change
+
+
 @dataclass(frozen=True)
 class FleetDiff:
     a: Path
@@ -224,7 +227,8 @@ class FleetDiff:
 
     @property
     def equal(self) -> bool:
-        return all(row.state == "compared" and row.changed == 0 for row in self.rows)
+        """Every log has the same pairs on both sides; one that failed in both is no change."""
+        return all(row.state in _SAME_STATES and row.changed == 0 for row in self.rows)
 
     def figures(self) -> GateFigures:
         """The gate's figures summed over the logs, coverage pooled over their windows."""
@@ -261,7 +265,9 @@ class FleetDiff:
         }
         totals["logs"] = len(self.rows)
         totals["compared"] = len(compared)
-        totals["changed_logs"] = sum(1 for r in self.rows if r.changed or r.state != "compared")
+        totals["changed_logs"] = sum(
+            1 for r in self.rows if r.changed or r.state not in _SAME_STATES
+        )
         return totals
 
     def to_json_dict(self) -> dict[str, Any]:
