@@ -309,6 +309,30 @@ def test_an_invalid_header_stamp_falls_back_to_the_log_time_counted(
     assert "1 frames without header stamp used the log time" in out
 
 
+@pytest.mark.parametrize("frame", [0, 5])
+@pytest.mark.parametrize("lag_ms", [1200, -1200])
+def test_a_negative_header_stamp_costs_no_other_frame(
+    frame: int,
+    lag_ms: int,
+    jpegs: list[bytes],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The recorder logs every frame 1.2 s after (or before) its stamp, more than the 0.5 s
+    between frames: the frame whose stamp has sec = -5 must not, timed by its raw log time,
+    jump ahead of the next frames (they were skipped as earlier) or behind the previous one."""
+    lag = lag_ms * 1_000_000
+    log_times = {i: make_bad_inputs.stamp(i) + lag for i in range(len(jpegs))}
+    log = _raw_log(jpegs, tmp_path / "log.mcap", headers={frame: (-5, 0)}, log_times=log_times)
+    for on_error in ("skip", "fail"):
+        args = ("annotate", log, "-o", tmp_path / "o.mcap", "--no-verify", "--on-error", on_error)
+        status, out, err = cli(capsys, *args)
+        assert status == 0, err
+        assert "12 frames of /camera/image_raw" in out and "0 skipped frames" in out
+        assert "1 frames without header stamp used the log time" in out
+        assert "clock jump" not in out + err
+
+
 @pytest.mark.parametrize("log_time", [2**64 - 1, 2**63 - 1, 2**31 * 10**9])
 @pytest.mark.parametrize("frame", [5, 11])
 def test_a_log_time_past_2038_skips_that_frame_counted(

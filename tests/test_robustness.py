@@ -533,6 +533,26 @@ def test_log_time_source_ignores_the_camera_clock() -> None:
     assert counts.clock_jumps == 0
 
 
+@pytest.mark.parametrize("missing", [0, 5], ids=["first frame", "frame 5"])
+@pytest.mark.parametrize("stamp", [0, None], ids=["stamp 0", "no stamp"])
+@pytest.mark.parametrize("lag", [1.2, -1.2, 3 * HOUR], ids=["log late", "log early", "3 h"])
+def test_a_frame_without_stamp_keeps_its_place_among_stamped_ones(
+    missing: int, stamp: int | None, lag: float
+) -> None:
+    """Log times = header stamps + lag at 2 Hz; one frame has no usable stamp (an invalid one,
+    negative seconds, arrives here as None). Its raw log time would be `lag` off the camera
+    clock: ahead of the next two frames (skipped as earlier), or behind the previous one."""
+    msgs = [message(100 + 0.5 * i + lag, 100 + 0.5 * i, i) for i in range(8)]
+    msgs[missing] = replace(msgs[missing], header_stamp_ns=stamp)
+    counts = FrameCounts()
+    times = [f.timestamp_ns / 1e9 for f in decoded_frames(msgs, counts)]
+    assert len(times) == 8 and counts.skipped_total == 0
+    assert np.diff(times) == pytest.approx([0.5] * 7)
+    assert counts.log_time_fallbacks == 1
+    # Before any stamp the frame is on the log clock, and the clocks 3 h apart are a jump.
+    assert counts.clock_jumps == (1 if missing == 0 and lag == 3 * HOUR else 0)
+
+
 def test_log_times_out_of_order_do_not_look_like_clock_jumps() -> None:
     msgs = [message(100, 10), message(80, 10.5), message(101, 11)]
     counts = FrameCounts()

@@ -13,6 +13,12 @@ Rules (docs/robustness.md has them per case):
 * a log time later than sources.base.MAX_TIME_NS (2038: our messages could not carry it; such
   clocks are broken) is skipped under SKIP_LOG_TIME, or raises TimestampError with
   on_error="fail"; an invalid header stamp reaches here as a missing one (sources.images);
+* with header time, a frame without a header stamp (missing, zero or invalid) is timed by the
+  log time elapsed since the frame with the latest log time, on the camera clock: its own log
+  time is off that clock by the recorder's latency, which would put it ahead of the next
+  frames (then skipped as earlier) or behind the previous one (itself skipped). Before the
+  first stamped frame there is no camera clock yet: such frames use their log time, and the
+  first stamped frame is bridged to them as across a jump (not counted as one);
 * with header time, a jump of the camera clock (the header stamps move more than
   CLOCK_JUMP_NS further or less than the log times do between two frames, e.g. an NTP step of
   hours) is bridged: from there on the stamps are shifted so that the detector's time moves as
@@ -82,6 +88,10 @@ class FrameCounts:
         self.skipped[reason] += count
         self.first_skip.setdefault(reason, detail)
 
+    def clock_jump(self, detail: str) -> None:
+        self.clock_jumps += 1
+        self.first_clock_jump = self.first_clock_jump or detail
+
     def skipped_by_reason(self) -> dict[str, int]:
         """Skipped frames by reason, undecodable ones by problem ("undecodable image: empty
         image"): the breakdown that summaries and the output's metadata show."""
@@ -137,6 +147,7 @@ def decoded_frames(
     previous: _Previous | None = None
     anchor = (0, 0)  # (detector time, log time) of the used frame with the latest log time
     shift = 0  # added to the header stamps since the last camera clock jump
+    stamped = False  # a frame with a header stamp was used: the camera clock is known
     for msg in messages:
         counts.messages += 1
         where = f"{msg.topic} at log time {msg.log_time_ns}"
@@ -158,16 +169,20 @@ def decoded_frames(
             # Measured from the frame with the latest log time so far: a log time out of order
             # (an unindexed file beyond the reorder window) measures nothing.
             log_step = msg.log_time_ns - anchor[1]
-            if time_source == "header" and log_step >= 0:
+            if time_source == "header" and not msg.header_stamp_ns and stamped:
+                stamp = anchor[0] + log_step  # on the camera clock (module docstring)
+            elif time_source == "header" and msg.header_stamp_ns and log_step >= 0:
                 jump = (stamp - anchor[0]) - log_step
                 if abs(jump) > CLOCK_JUMP_NS:
-                    bridged = max(anchor[0] + log_step, previous.time)
-                    shift += bridged - stamp
-                    stamp = bridged
-                    counts.clock_jumps += 1
-                    counts.first_clock_jump = counts.first_clock_jump or (
+                    counts.clock_jump(
                         f"{where}: header stamps jump {_hours(jump)} against the log time"
                     )
+                # The first stamped frame after frames timed by their log time alone: it
+                # continues from them as across a jump, uncounted (the clock changes, not
+                # the camera's).
+                if abs(jump) > CLOCK_JUMP_NS or not stamped:
+                    bridged = max(anchor[0] + log_step, previous.time)
+                    shift, stamp = shift + bridged - stamp, bridged
             if stamp < previous.time:
                 detail = f"{where}: {stamp} < {previous.time}"
                 if on_error == "fail":
@@ -188,5 +203,6 @@ def decoded_frames(
         yield Frame(counts.used, stamp, msg.log_time_ns, msg.header_stamp_ns, image)
         counts.used += 1
         previous = _Previous(stamp, msg.log_time_ns, msg.header_stamp_ns, msg.data)
+        stamped = stamped or bool(msg.header_stamp_ns)
         if msg.log_time_ns >= anchor[1]:
             anchor = (stamp, msg.log_time_ns)
