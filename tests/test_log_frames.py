@@ -25,7 +25,9 @@ def mono(
 def test_header_time_with_log_time_fallback_for_zero_stamps() -> None:
     counts = FrameCounts()
     frames = list(decoded_frames([mono(10, 5), mono(20, 0), mono(30, None), mono(40, 41)], counts))
-    assert [f.timestamp_ns for f in frames] == [5, 20, 30, 41]
+    # A frame without a stamp moves on by its log time since the previous frame, on the
+    # camera clock (5 + 10, + 10), not to its raw log time (20, 30: 15 ns behind the camera).
+    assert [f.timestamp_ns for f in frames] == [5, 15, 25, 41]
     assert counts.log_time_fallbacks == 2 and counts.used == 4
     assert [f.index for f in frames] == [0, 1, 2, 3]
 
