@@ -23,15 +23,9 @@ from hypothesis.extra.numpy import arrays
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
-from doseqslam_logs.export.base import ExportOptions
-from doseqslam_logs.export.gtsam_graph import (
-    OptimizeOptions,
-    gtsam_information,
-    optimize_pose_graph,
-    to_gtsam,
-)
+from doseqslam_logs.export.base import OPTIMIZED_POSE_TOPIC, ExportOptions, OptimizeOptions
+from doseqslam_logs.export.gtsam_graph import gtsam_information, optimize_pose_graph, to_gtsam
 from doseqslam_logs.export.loops import frame_times_ns
-from doseqslam_logs.export.optimize import OPTIMIZED_POSE_TOPIC
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph
 from doseqslam_logs.sources import open_source
 from doseqslam_logs.sources.poses import PoseTrack, read_poses

@@ -19,8 +19,8 @@ import numpy.typing as npt
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
-from doseqslam_logs.export.base import ExportOptions
-from doseqslam_logs.export.gtsam_graph import OptimizeOptions, optimize_pose_graph
+from doseqslam_logs.export.base import ExportOptions, OptimizeOptions
+from doseqslam_logs.export.gtsam_graph import optimize_pose_graph
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph
 from doseqslam_logs.sources.poses import read_poses

@@ -51,8 +51,8 @@ from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.cli.main import main as cli_main
-from doseqslam_logs.export.base import ExportOptions
-from doseqslam_logs.export.gtsam_graph import OptimizeOptions, optimize_pose_graph
+from doseqslam_logs.export.base import ExportOptions, OptimizeOptions
+from doseqslam_logs.export.gtsam_graph import optimize_pose_graph
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph, relative_pose
 from doseqslam_logs.sources.poses import PoseTrack, read_poses

@@ -9,9 +9,10 @@ from __future__ import annotations
 import importlib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-from .job import Job, Outcome
+if TYPE_CHECKING:  # a job runs the pipeline (OpenCV, SciPy): not needed to name the engines
+    from .job import Job, Outcome
 
 # engine name -> module (imported only when chosen, so optional extras stay optional)
 ENGINES = {

@@ -6,9 +6,9 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..pipeline.annotate import AnnotateOptions, AnnotateResult, annotate_log
-from ..sinks.mcap_writer import CHUNK_SIZE, COMPRESSIONS, OutputFormat
+from ..sinks.output_format import CHUNK_SIZE, COMPRESSIONS, OutputFormat
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..verification.summary import verification_summary
 from .params_args import (
@@ -20,6 +20,11 @@ from .params_args import (
 )
 from .progress import Progress
 from .times import time_argument
+
+# The pipeline (OpenCV, SciPy, faiss) is imported when a run starts: parsing the arguments,
+# --help and a usage error do not pay for it (issue #40).
+if TYPE_CHECKING:
+    from ..pipeline.annotate import AnnotateOptions, AnnotateResult
 
 
 def positive_int(text: str) -> int:
@@ -145,6 +150,8 @@ def add_max_pixels_option(parser: argparse.ArgumentParser) -> None:
 
 def annotate_options_from_args(args: argparse.Namespace, workers: int) -> AnnotateOptions:
     """The AnnotateOptions of the options add_run_options defines."""
+    from ..pipeline.annotate import AnnotateOptions
+
     return AnnotateOptions(
         topic=args.topic,
         time_source=args.time_source,
@@ -260,6 +267,8 @@ def warnings(result: AnnotateResult) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..pipeline.annotate import annotate_log
+
     params = run_parameters(args)
     options = annotate_options_from_args(args, args.workers)
     progress = Progress(None, "annotate")

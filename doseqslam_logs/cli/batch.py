@@ -10,8 +10,6 @@ from pathlib import Path
 from ..batch.discovery import discover_logs
 from ..batch.engine import ENGINES, EngineSettings
 from ..batch.manifest import MANIFEST_NAME
-from ..batch.report import ConsoleDisplay, summary_table
-from ..batch.runner import plan_batch, run_batch
 from ..errors import ExitCode, OutputError, UsageError
 from ..sinks.atomic import check_output_path
 from .annotate import add_run_options, annotate_options_from_args, positive_int
@@ -71,6 +69,10 @@ def _check_outdir(outdir: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Here, not above: the runner imports the pipeline (OpenCV, SciPy; issue #40).
+    from ..batch.report import ConsoleDisplay, summary_table
+    from ..batch.runner import plan_batch, run_batch
+
     if args.address is not None and args.engine != "ray":
         raise UsageError("--address is the address of a Ray cluster: use it with --engine ray")
     _check_outdir(args.output)

@@ -19,7 +19,6 @@ from typing import Any
 
 from ..errors import ExitCode, SourceError, UsageError
 from ..evaluation.diff_gate import Gate, GateFigures, parse_gate
-from ..evaluation.log_run import LogEvaluationOptions, check_options
 
 _TRUTH_FLAGS = {
     "gt_variable": "--gt-variable",
@@ -109,6 +108,7 @@ def tolerance_ns(milliseconds: float) -> int:
 def truth_options(args: argparse.Namespace, folders: bool) -> Any:
     """The ground-truth options for both sides (a fleet_diff.TruthOptions), or None."""
     from ..evaluation.fleet_diff import TruthOptions
+    from ..evaluation.log_run import LogEvaluationOptions, check_options
 
     if args.tolerance < 0:
         raise UsageError(f"--tolerance must be >= 0, got {args.tolerance}")

@@ -16,8 +16,6 @@ import json
 from pathlib import Path
 
 from ..errors import UsageError
-from ..evaluation.folder_run import evaluate_folder
-from ..evaluation.groundtruth import load_ground_truth
 from ..sources.image_folder import FPS_MAX, FPS_MIN, check_fps
 from . import evaluate_log
 from .annotate import add_max_pixels_option
@@ -126,6 +124,10 @@ def _check_images_args(args: argparse.Namespace) -> None:
 
 
 def _run_images(args: argparse.Namespace) -> int:
+    # Here, not above: the folder's run and ground truth import OpenCV and SciPy (issue #40).
+    from ..evaluation.folder_run import evaluate_folder
+    from ..evaluation.groundtruth import load_ground_truth
+
     _check_images_args(args)
     params = run_parameters(args)  # as annotate: th = VERIFIED_THRESHOLD unless given
     verification = verification_from_args(args)  # bad options fail before the run

@@ -6,9 +6,13 @@ import argparse
 import dataclasses
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import UsageError
-from ..evaluation.log_run import LogEvaluationOptions, evaluate_log
+
+# The log's evaluation (ground truth: OpenCV, SciPy) is imported when it runs (issue #40).
+if TYPE_CHECKING:
+    from ..evaluation.log_run import LogEvaluationOptions
 
 # Options of the annotated-log mode, by argparse destination, as the user spells them.
 _LOG_OPTIONS = {
@@ -92,6 +96,8 @@ def _check_log_args(args: argparse.Namespace) -> None:
 
 
 def run_log(args: argparse.Namespace) -> int:
+    from ..evaluation.log_run import evaluate_log
+
     _check_log_args(args)
     report = evaluate_log(args.log, _options(args))
     if args.json:
@@ -102,5 +108,7 @@ def run_log(args: argparse.Namespace) -> int:
 
 
 def _options(args: argparse.Namespace) -> LogEvaluationOptions:
+    from ..evaluation.log_run import LogEvaluationOptions
+
     names = [f.name for f in dataclasses.fields(LogEvaluationOptions)]
     return LogEvaluationOptions(**{name: getattr(args, name) for name in names})

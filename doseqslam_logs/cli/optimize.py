@@ -11,14 +11,14 @@ import argparse
 import json
 from pathlib import Path
 
-from ..export.gtsam_graph import (
+from ..export.base import (
     DEFAULT_KERNEL_WIDTH,
     DEFAULT_LOOP_KERNEL,
     DEFAULT_OUTLIER_BOUND,
     LOOP_KERNELS,
+    OPTIMIZED_POSE_TOPIC,
     OptimizeOptions,
 )
-from ..export.optimize import OPTIMIZED_POSE_TOPIC, optimize_log
 from .export import add_pose_graph_options, pose_graph_options, positive_float
 
 
@@ -70,6 +70,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..export.optimize import optimize_log  # the pose graph: SciPy (issue #40)
+
     options = pose_graph_options(args)
     optimize_options = OptimizeOptions(
         loop_kernel=args.loop_kernel,

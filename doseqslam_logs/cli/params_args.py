@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..detector import Parameters
 from ..errors import ParameterError, UsageError
@@ -13,12 +14,10 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:
     import tomli as tomllib
-from ..verification import (
-    VERIFIED_THRESHOLD,
-    Intrinsics,
-    VerificationParameters,
-    verified_defaults,
-)
+from ..verification import VERIFIED_THRESHOLD, VerificationParameters, verified_defaults
+
+if TYPE_CHECKING:
+    from ..verification import Intrinsics
 
 
 def add_parameter_options(parser: argparse.ArgumentParser) -> None:
@@ -121,6 +120,8 @@ def intrinsics_from_args(args: argparse.Namespace) -> Intrinsics | None:
     """--intrinsics fx,fy,cx,cy, or None. Raises UsageError for a malformed value."""
     if not getattr(args, "intrinsics", None):
         return None
+    from ..verification import Intrinsics  # the pair checks: OpenCV, SciPy (issue #40)
+
     try:
         fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
         return Intrinsics(fx, fy, cx, cy)

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from .difference import FrameStore
-from .doseqslam import DOSeqSLAM, PreparedFrame
+from ..lazy import lazy_names
 from .events import Alternative, Candidate, SequenceDecision
 from .params import Parameters
-from .seqslam import SeqSLAM
+
+if TYPE_CHECKING:
+    from .difference import FrameStore
+    from .doseqslam import DOSeqSLAM, PreparedFrame
+    from .seqslam import SeqSLAM
 
 __all__ = [
     "Alternative",
@@ -24,6 +27,11 @@ __all__ = [
     "SequenceDecision",
     "make_detector",
 ]
+
+# The detectors import OpenCV: only when used, so that `detector.params` alone stays light.
+__getattr__ = lazy_names(
+    __name__, {"doseqslam": ["DOSeqSLAM", "PreparedFrame"], "seqslam": ["SeqSLAM"]}
+)
 
 
 class Detector(Protocol):
@@ -53,6 +61,9 @@ class Detector(Protocol):
 def make_detector(params: Parameters, store: FrameStore | None = None) -> Detector:
     """The detector `params.method` names; `store`: where it keeps its frame vectors (empty;
     None: in memory)."""
+    from .doseqslam import DOSeqSLAM
+    from .seqslam import SeqSLAM
+
     if params.method == "seqslam":
         return SeqSLAM(params, store)
     return DOSeqSLAM(params, store=store)

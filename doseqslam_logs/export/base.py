@@ -1,4 +1,9 @@
-"""What every export format provides: options in, text out, one summary line for people."""
+"""What every export format provides: options in, text out, one summary line for people; and
+what `optimize` is asked (`OptimizeOptions`) and writes (`OPTIMIZED_POSE_TOPIC`).
+
+Options and their defaults live here, apart from the pose-graph code (SciPy), so that the
+command line can show them without importing it.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +14,7 @@ from pathlib import Path
 from typing import Literal
 
 from ..annotations.reader import AnnotatedLog
+from ..annotations.records import OUR_TOPIC_PREFIX
 
 # The loop-edge measurement model of docs/export.md: a loop closure says "same place", not how
 # far apart the two cameras were, so its translation is weak and its rotation firmer.
@@ -60,3 +66,36 @@ class Exporter:
     help: str
     needs_poses: bool
     export: Callable[[AnnotatedLog, ExportOptions], ExportResult]
+
+
+OPTIMIZED_POSE_TOPIC = OUR_TOPIC_PREFIX + "optimized_pose"
+
+LoopKernel = Literal["cauchy", "huber", "none"]
+LOOP_KERNELS: tuple[LoopKernel, ...] = ("cauchy", "huber", "none")
+
+# Chosen on the generated and committed drives (docs/export.md, "Optimizing the pose graph").
+DEFAULT_LOOP_KERNEL: LoopKernel = "cauchy"
+DEFAULT_KERNEL_WIDTH = 1.0  # in whitened units (sigmas of the loop edge's Gaussian)
+# chi2.ppf(0.99, 6): a right loop edge's squared error stays below it 99 % of the time.
+DEFAULT_OUTLIER_BOUND = 16.812
+
+
+@dataclass(frozen=True)
+class OptimizeOptions:
+    """How loop edges are weighed and checked."""
+
+    loop_kernel: LoopKernel = DEFAULT_LOOP_KERNEL
+    kernel_width: float = DEFAULT_KERNEL_WIDTH  # Cauchy c / Huber k, whitened units
+    outlier_check: bool = True  # drop loop edges above outlier_bound and optimize again
+    outlier_bound: float = DEFAULT_OUTLIER_BOUND  # on a loop edge's squared Mahalanobis error
+    max_iterations: int = 100  # Levenberg-Marquardt, per round
+    # The odometry's heading drift and covariance factor from the metric loop edges
+    # (odometry_calibration.py); off: the odometry as /odom states it.
+    calibrate_odometry: bool = True
+
+    def __post_init__(self) -> None:
+        """Raises ValueError for an unknown kernel or a width, bound or count that is not > 0."""
+        if self.loop_kernel not in LOOP_KERNELS:
+            raise ValueError(f"unknown loop kernel {self.loop_kernel!r}")
+        if not (self.kernel_width > 0 and self.outlier_bound > 0 and self.max_iterations > 0):
+            raise ValueError("kernel_width, outlier_bound and max_iterations must be > 0")

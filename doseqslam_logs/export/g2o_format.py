@@ -19,14 +19,17 @@ and factor in a `#` line), as `optimize` builds its graph.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..annotations.reader import AnnotatedLog
 from ..annotations.records import ROTATION_ONLY
 from .base import Exporter, ExportOptions, ExportResult
-from .odometry_calibration import OdometryCalibration, calibrate_odometry, calibrated_graph
-from .pose_graph import Edge, PoseGraph, build_pose_graph, with_pose_topic
+
+if TYPE_CHECKING:
+    from .odometry_calibration import OdometryCalibration
+    from .pose_graph import Edge, PoseGraph
 
 _UPPER = np.triu_indices(6)
 _INFORMATION_LINE = (
@@ -103,6 +106,10 @@ def g2o_lines(
 
 
 def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
+    # Here, not above: the pose graph imports SciPy, FORMATS (the command line) needs none.
+    from .odometry_calibration import calibrate_odometry, calibrated_graph
+    from .pose_graph import build_pose_graph, with_pose_topic
+
     options = with_pose_topic(options, log.path)
     graph = build_pose_graph(log, options)
     if not options.calibrate_odometry:

@@ -31,13 +31,14 @@ import importlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from ..errors import UsageError
+from .base import OptimizeOptions
 from .odometry_calibration import (
     OdometryCalibration,
     calibrate_odometry,
@@ -49,15 +50,7 @@ from .pose_graph import Edge, PoseGraph
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
-LoopKernel = Literal["cauchy", "huber", "none"]
-LOOP_KERNELS: tuple[LoopKernel, ...] = ("cauchy", "huber", "none")
 GTSAM_EXTRA = "pip install 'doseqslam-logs[gtsam]'"
-
-# Chosen on the generated and committed drives (docs/export.md, "Optimizing the pose graph").
-DEFAULT_LOOP_KERNEL: LoopKernel = "cauchy"
-DEFAULT_KERNEL_WIDTH = 1.0  # in whitened units (sigmas of the loop edge's Gaussian)
-# chi2.ppf(0.99, 6): a right loop edge's squared error stays below it 99 % of the time.
-DEFAULT_OUTLIER_BOUND = 16.812
 # The first vertex stays where the odometry put it (sigmas in rad and m).
 PRIOR_SIGMAS = (1e-6,) * 6
 MAX_OUTLIER_ROUNDS = 10
@@ -82,27 +75,6 @@ def import_gtsam() -> ModuleType:
         return importlib.import_module("gtsam")
     except ImportError as exc:
         raise UsageError(f"pose-graph optimization needs GTSAM ({exc}): {GTSAM_EXTRA}") from exc
-
-
-@dataclass(frozen=True)
-class OptimizeOptions:
-    """How loop edges are weighed and checked."""
-
-    loop_kernel: LoopKernel = DEFAULT_LOOP_KERNEL
-    kernel_width: float = DEFAULT_KERNEL_WIDTH  # Cauchy c / Huber k, whitened units
-    outlier_check: bool = True  # drop loop edges above outlier_bound and optimize again
-    outlier_bound: float = DEFAULT_OUTLIER_BOUND  # on a loop edge's squared Mahalanobis error
-    max_iterations: int = 100  # Levenberg-Marquardt, per round
-    # The odometry's heading drift and covariance factor from the metric loop edges
-    # (odometry_calibration.py); off: the odometry as /odom states it.
-    calibrate_odometry: bool = True
-
-    def __post_init__(self) -> None:
-        """Raises ValueError for an unknown kernel or a width, bound or count that is not > 0."""
-        if self.loop_kernel not in LOOP_KERNELS:
-            raise ValueError(f"unknown loop kernel {self.loop_kernel!r}")
-        if not (self.kernel_width > 0 and self.outlier_bound > 0 and self.max_iterations > 0):
-            raise ValueError("kernel_width, outlier_bound and max_iterations must be > 0")
 
 
 @dataclass(frozen=True)

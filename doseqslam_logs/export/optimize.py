@@ -18,19 +18,16 @@ import numpy as np
 import numpy.typing as npt
 
 from ..annotations.reader import AnnotatedLog, read_annotations
-from ..annotations.records import OUR_TOPIC_PREFIX
 from ..errors import OutputError
 from ..sinks.atomic import check_output_path
 from ..sinks.pose_topic import FoxgloveEncoding, PoseStream, write_with_poses
 from ..sources import open_source
-from .base import ExportOptions
-from .gtsam_graph import OptimizedGraph, OptimizeOptions, import_gtsam, optimize_pose_graph
+from .base import OPTIMIZED_POSE_TOPIC, ExportOptions, OptimizeOptions
+from .gtsam_graph import OptimizedGraph, import_gtsam, optimize_pose_graph
 from .loops import frame_times_ns
 from .pose_graph import PoseGraph, build_pose_graph, with_pose_topic
 
 I64 = npt.NDArray[np.int64]
-
-OPTIMIZED_POSE_TOPIC = OUR_TOPIC_PREFIX + "optimized_pose"
 
 
 @dataclass(frozen=True)

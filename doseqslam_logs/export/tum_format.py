@@ -12,11 +12,14 @@ detector time (header stamp, else log time), in seconds with 9 decimals. Any pos
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 from ..annotations.reader import AnnotatedLog
 from ..annotations.records import NANOS_PER_SECOND
 from .base import Exporter, ExportOptions, ExportResult
-from .pose_graph import PoseGraph, build_pose_graph, with_pose_topic
+
+if TYPE_CHECKING:
+    from .pose_graph import PoseGraph
 
 HEADER = "# timestamp x y z qx qy qz qw\n"
 
@@ -37,6 +40,9 @@ def tum_lines(graph: PoseGraph) -> Iterator[str]:
 
 
 def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
+    # Here, not above: the pose graph imports SciPy, FORMATS (the command line) needs none.
+    from .pose_graph import build_pose_graph, with_pose_topic
+
     options = with_pose_topic(options, log.path)
     graph = build_pose_graph(log, options)
     summary = f"{len(graph.vertex_ids)} poses of {options.odometry_topic} at camera times"

@@ -35,11 +35,11 @@ from ..errors import (
 from ..sinks.atomic import check_output_path, scratch_file
 from ..sinks.mcap_writer import (
     Annotations,
-    OutputFormat,
     WriteSummary,
     refuse_same_file,
     write_annotated_mcap,
 )
+from ..sinks.output_format import OutputFormat
 from ..sinks.visualization import Visualization, read_trajectory, visual_loops
 from ..sources import Log, is_mcap_file, open_source, pick_image_topic
 from ..sources.base import Promise, Source

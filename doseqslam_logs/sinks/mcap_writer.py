@@ -20,7 +20,7 @@ from typing import Any, BinaryIO, Literal, Protocol, TypeVar
 import zstandard
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import Writer
 from rosbags.interfaces import Connection, ConnectionExtRosbag1, MessageDefinitionFormat
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag2 import Reader as Ros2Reader
@@ -57,16 +57,11 @@ from ..sources.base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC, Source
 from .atomic import atomic_output
 from .encoders import MessageEncoder, encoder_for_profile
 from .message_spool import SpooledMessages, in_order
+from .output_format import COMPRESSIONS, OutputFormat
 from .visual_encoders import visual_encoder_for_profile
 from .visualization import Visualization, VisualWriter
 
 LIBRARY = f"doseqslam-logs/{__version__}"
-CHUNK_SIZE = 1024 * 1024  # the default; with the compression, part of the output's bytes
-COMPRESSIONS = {
-    "zstd": CompressionType.ZSTD,
-    "lz4": CompressionType.LZ4,
-    "none": CompressionType.NONE,
-}
 
 InputKind = Literal["mcap", "ros1-bag", "rosbag2"]
 T = TypeVar("T")
@@ -122,21 +117,6 @@ class Annotations:
         """Removes the messages' temporary file, if they are spooled (`from_decisions`)."""
         if isinstance(self.messages, SpooledMessages):
             self.messages.close()
-
-
-@dataclass(frozen=True)
-class OutputFormat:
-    """How the output's chunks are written (`--compression`, `--chunk-size`, as `mcap` has)."""
-
-    compression: str = "zstd"  # a key of COMPRESSIONS
-    chunk_size: int = CHUNK_SIZE  # bytes of messages per chunk, before compression
-
-    def __post_init__(self) -> None:
-        """Raises ValueError for an unknown compression or a chunk size below 1."""
-        if self.compression not in COMPRESSIONS:
-            raise ValueError(f"unknown compression {self.compression!r}")
-        if self.chunk_size < 1:
-            raise ValueError(f"the chunk size must be >= 1, got {self.chunk_size}")
 
 
 @dataclass(frozen=True)

@@ -30,14 +30,8 @@ from ..annotations.records import time_dict
 from ..annotations.schema_files import read_schema
 from ..errors import SourceError
 from .atomic import atomic_output
-from .mcap_writer import (
-    COMPRESSIONS,
-    LIBRARY,
-    OutputFormat,
-    detect_input,
-    input_records,
-    refuse_same_file,
-)
+from .mcap_writer import LIBRARY, detect_input, input_records, refuse_same_file
+from .output_format import COMPRESSIONS, OutputFormat
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]

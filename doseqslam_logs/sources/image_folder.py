@@ -7,11 +7,9 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..errors import SourceError, UsageError
-from . import opencv_quiet  # noqa: F401 - OpenCV's log off, once
 from .frame import Frame
 from .image_header import DEFAULT_MAX_PIXELS, claimed_size
 from .images import Gray, captured_stderr, check_pixel_cap
@@ -62,6 +60,8 @@ def read_gray_file(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> Gray:
     ImageDecodeError ("too large") when it claims more than `max_pixels` pixels. A folder's
     frames are numbered by position, so an image cannot be skipped: either refuses the run.
     """
+    from .opencv_quiet import cv2
+
     try:
         data = path.read_bytes()
     except OSError as exc:

@@ -22,12 +22,10 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
 from doseqslam_logs.errors import ImageDecodeError
-from doseqslam_logs.sources import opencv_quiet  # noqa: F401 - OpenCV's log off, once
 from doseqslam_logs.sources.base import MAX_TIME_NS, ImageKind, ImageMessage
 from doseqslam_logs.sources.image_header import DEFAULT_MAX_PIXELS, claimed_size
 
@@ -69,17 +67,26 @@ def _mono16(rows: Rows, msg: ImageMessage) -> Gray:
     return (words >> 8).astype(np.uint8)
 
 
-def _cvt_color(code: int, channels: int) -> Callable[[Rows, ImageMessage], Gray]:
+# The conversions name OpenCV's codes (cv2.COLOR_...): OpenCV is imported at the first
+# conversion (opencv_quiet), not with RAW_ENCODINGS.
+
+
+def _cvt_color(code: str, channels: int) -> Callable[[Rows, ImageMessage], Gray]:
     def convert(rows: Rows, msg: ImageMessage) -> Gray:
+        from doseqslam_logs.sources.opencv_quiet import cv2
+
         pixels = np.ascontiguousarray(rows).reshape(rows.shape[0], -1, channels)
-        return np.asarray(cv2.cvtColor(pixels, code), dtype=np.uint8)
+        return np.asarray(cv2.cvtColor(pixels, getattr(cv2, code)), dtype=np.uint8)
 
     return convert
 
 
-def _demosaic(code: int) -> Callable[[Rows, ImageMessage], Gray]:
+def _demosaic(code: str) -> Callable[[Rows, ImageMessage], Gray]:
     def convert(rows: Rows, msg: ImageMessage) -> Gray:
-        return np.asarray(cv2.cvtColor(np.ascontiguousarray(rows), code), dtype=np.uint8)
+        from doseqslam_logs.sources.opencv_quiet import cv2
+
+        pixels = np.ascontiguousarray(rows)
+        return np.asarray(cv2.cvtColor(pixels, getattr(cv2, code)), dtype=np.uint8)
 
     return convert
 
@@ -107,7 +114,7 @@ def _float32(rows: Rows, msg: ImageMessage) -> Gray:
     return out
 
 
-_BGR8 = RawEncoding(3, _cvt_color(cv2.COLOR_BGR2GRAY, 3))
+_BGR8 = RawEncoding(3, _cvt_color("COLOR_BGR2GRAY", 3))
 _MONO8 = RawEncoding(1, _mono8)
 _MONO16 = RawEncoding(2, _mono16)
 _UYVY = RawEncoding(2, _luma_at(1))  # U Y0 V Y1
@@ -118,17 +125,17 @@ RAW_ENCODINGS: dict[str, RawEncoding] = {
     "8UC1": _MONO8,
     "mono16": _MONO16,
     "16UC1": _MONO16,
-    "rgb8": RawEncoding(3, _cvt_color(cv2.COLOR_RGB2GRAY, 3)),
+    "rgb8": RawEncoding(3, _cvt_color("COLOR_RGB2GRAY", 3)),
     "bgr8": _BGR8,
     "8UC3": _BGR8,  # cv_bridge treats an untyped 3-channel image as BGR
-    "rgba8": RawEncoding(4, _cvt_color(cv2.COLOR_RGBA2GRAY, 4)),
-    "bgra8": RawEncoding(4, _cvt_color(cv2.COLOR_BGRA2GRAY, 4)),
+    "rgba8": RawEncoding(4, _cvt_color("COLOR_RGBA2GRAY", 4)),
+    "bgra8": RawEncoding(4, _cvt_color("COLOR_BGRA2GRAY", 4)),
     # The explicit 4-letter OpenCV names: the older 2-letter ones (BayerBG, ...) are shifted by
     # one pixel relative to the ROS names and easy to get wrong.
-    "bayer_rggb8": RawEncoding(1, _demosaic(cv2.COLOR_BayerRGGB2GRAY)),
-    "bayer_bggr8": RawEncoding(1, _demosaic(cv2.COLOR_BayerBGGR2GRAY)),
-    "bayer_gbrg8": RawEncoding(1, _demosaic(cv2.COLOR_BayerGBRG2GRAY)),
-    "bayer_grbg8": RawEncoding(1, _demosaic(cv2.COLOR_BayerGRBG2GRAY)),
+    "bayer_rggb8": RawEncoding(1, _demosaic("COLOR_BayerRGGB2GRAY")),
+    "bayer_bggr8": RawEncoding(1, _demosaic("COLOR_BayerBGGR2GRAY")),
+    "bayer_gbrg8": RawEncoding(1, _demosaic("COLOR_BayerGBRG2GRAY")),
+    "bayer_grbg8": RawEncoding(1, _demosaic("COLOR_BayerGRBG2GRAY")),
     "yuv422": _UYVY,  # the ROS name for UYVY
     "uyvy": _UYVY,
     "UYVY": _UYVY,
@@ -185,6 +192,8 @@ def _where(msg: ImageMessage) -> str:
 
 
 def _decode_raw(msg: ImageMessage) -> Gray:
+    from doseqslam_logs.sources.opencv_quiet import cv2
+
     layout = RAW_ENCODINGS.get(msg.encoding)
     if layout is None:
         raise ImageDecodeError(
@@ -286,6 +295,8 @@ def captured_stderr() -> Iterator[list[str]]:
 
 
 def _decode_compressed(msg: ImageMessage) -> Gray:
+    from doseqslam_logs.sources.opencv_quiet import cv2
+
     what = f"{_where(msg)}: compressed image (format {msg.encoding!r})"
     if not msg.data:
         raise ImageDecodeError(f"{what} has no data", EMPTY_IMAGE)

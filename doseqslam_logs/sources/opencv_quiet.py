@@ -5,10 +5,14 @@ read data: ... Unexpected end of input stream") on the process's stderr, on top 
 it returns: that line would break the promise of one line per error. Importing this module
 sets the level once, before the first decode; the decoders still say what is wrong in our
 words (the libjpeg and libpng messages images.py captures are not OpenCV's log).
+
+The decoders import OpenCV from here, in the functions that decode (`from
+doseqslam_logs.sources.opencv_quiet import cv2`): reading a log's channels and messages, and
+every command that only does that, does not pay OpenCV's import (issue #40).
 """
 
 from __future__ import annotations
 
-import cv2
+import cv2 as cv2  # re-exported: OpenCV with its log off
 
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_FATAL)

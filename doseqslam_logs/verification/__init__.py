@@ -7,18 +7,9 @@ then also a rotation limit and bracketing of the refined match: `bracketed_match
 
 from __future__ import annotations
 
-from .geometry import (
-    NOT_BRACKETED,
-    FrameFeatures,
-    Intrinsics,
-    Verdict,
-    best_verdict,
-    bracketed_match,
-    extract_features,
-    match_camera_direction,
-    refine_match,
-    verify_pair,
-)
+from typing import TYPE_CHECKING
+
+from ..lazy import lazy_names
 from .params import (
     DEFAULT_VERIFICATION,
     VERIFIED_ALTERNATIVES,
@@ -29,7 +20,21 @@ from .params import (
     verified_defaults,
     verified_detector_parameters,
 )
-from .stage import PairCheck, VerificationStats, VerifiedDecision, Verifier
+
+if TYPE_CHECKING:
+    from .geometry import (
+        NOT_BRACKETED,
+        FrameFeatures,
+        Intrinsics,
+        Verdict,
+        best_verdict,
+        bracketed_match,
+        extract_features,
+        match_camera_direction,
+        refine_match,
+        verify_pair,
+    )
+    from .stage import PairCheck, VerificationStats, VerifiedDecision, Verifier
 
 __all__ = [
     "DEFAULT_VERIFICATION",
@@ -55,3 +60,24 @@ __all__ = [
     "verified_detector_parameters",
     "verify_pair",
 ]
+
+# The pair checks import OpenCV and SciPy: only when used, so that `verification.params`
+# (the command line's defaults) stays light.
+__getattr__ = lazy_names(
+    __name__,
+    {
+        "geometry": [
+            "NOT_BRACKETED",
+            "FrameFeatures",
+            "Intrinsics",
+            "Verdict",
+            "best_verdict",
+            "bracketed_match",
+            "extract_features",
+            "match_camera_direction",
+            "refine_match",
+            "verify_pair",
+        ],
+        "stage": ["PairCheck", "VerificationStats", "VerifiedDecision", "Verifier"],
+    },
+)

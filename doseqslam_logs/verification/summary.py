@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from .stage import VerificationStats
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the stage imports the pair checks (OpenCV, SciPy); a summary needs none
+    from .stage import VerificationStats
 
 
 def verification_summary(
