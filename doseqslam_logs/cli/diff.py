@@ -19,6 +19,7 @@ from typing import Any
 
 from ..errors import ExitCode, SourceError, UsageError
 from ..evaluation.diff_gate import Gate, GateFigures, parse_gate
+from .evaluate_log import add_pose_truth_options, add_truth_file_options
 
 _TRUTH_FLAGS = {
     "gt_variable": "--gt-variable",
@@ -77,19 +78,8 @@ def _add_truth_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(
         "ground truth", "as evaluate OUT.mcap takes it: --gt FILE, or --gt-topic with --radius"
     )
-    group.add_argument("--gt", type=Path, metavar="GTFILE", help="ground-truth matrix (one log)")
-    group.add_argument("--gt-variable", metavar="NAME", help="variable inside a .mat/.npz")
-    group.add_argument("--gt-topic", metavar="TOPIC", help="ground truth from this pose topic")
-    group.add_argument("--radius", type=float, metavar="R", help="revisit radius (m)")
-    group.add_argument("--max-heading", type=float, metavar="DEG", help="max yaw difference")
-    group.add_argument("--min-travel", type=float, metavar="M", help="min travel in between (m)")
-    group.add_argument(
-        "--tolerance",
-        type=int,
-        default=0,
-        metavar="K",
-        help="count a match within +-K frames of a ground-truth cell (default 0)",
-    )
+    add_truth_file_options(group)
+    add_pose_truth_options(group)
     group.add_argument(
         "--source",
         type=Path,

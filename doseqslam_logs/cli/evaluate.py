@@ -52,22 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         type=frame_rate,
         help=f"frame rate of the folder (with --images; {FPS_MIN:g} to {FPS_MAX:g})",
     )
-    parser.add_argument(
-        "--gt",
-        type=Path,
-        metavar="GTFILE",
-        help="ground-truth matrix (.mat, .bmp/.png, .npy/.npz), one row per frame",
-    )
-    parser.add_argument(
-        "--gt-variable", metavar="NAME", help="variable inside a .mat/.npz (default: the only one)"
-    )
-    parser.add_argument(
-        "--tolerance",
-        type=int,
-        default=0,
-        metavar="K",
-        help="count a match within +-K frames of a ground-truth cell (default 0)",
-    )
+    evaluate_log.add_truth_file_options(parser)
     parser.add_argument("--json", action="store_true", help="print the results as JSON")
     add_max_pixels_option(parser)
     evaluate_log.add_log_options(parser)

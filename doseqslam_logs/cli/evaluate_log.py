@@ -32,6 +32,51 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
         "annotated log (OUT.mcap)",
         "The run's parameters come from the log; --config, --method and --set do not apply.",
     )
+    add_pose_truth_options(group)
+    group.add_argument(
+        "--poses-topic",
+        metavar="TOPIC",
+        help="pose topic for the trajectory picture (default: --gt-topic)",
+    )
+    group.add_argument(
+        "--source",
+        type=Path,
+        metavar="LOG",
+        help="the log that was annotated, to read images and poses from when OUT.mcap is a "
+        "sidecar (its sha256 must match the one recorded)",
+    )
+    group.add_argument(
+        "--plot",
+        type=Path,
+        metavar="DIR",
+        help="write pr_curve.png, difference_matrix.png and, with a pose topic, "
+        "trajectory.png into DIR (needs matplotlib: pip install 'doseqslam-logs[plot]')",
+    )
+
+
+def add_truth_file_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--gt, --gt-variable, --tolerance: a ground-truth matrix and how a match is counted
+    (evaluate's, for an image folder and a log; diff's)."""
+    parser.add_argument(
+        "--gt",
+        type=Path,
+        metavar="GTFILE",
+        help="ground-truth matrix (.mat, .bmp/.png, .npy/.npz), one row per frame",
+    )
+    parser.add_argument(
+        "--gt-variable", metavar="NAME", help="variable inside a .mat/.npz (default: the only one)"
+    )
+    parser.add_argument(
+        "--tolerance",
+        type=int,
+        default=0,
+        metavar="K",
+        help="count a match within +-K frames of a ground-truth cell (default 0)",
+    )
+
+
+def add_pose_truth_options(group: argparse._ArgumentGroup) -> None:
+    """--gt-topic and its revisit criteria (evaluate OUT.mcap's; diff's)."""
     group.add_argument(
         "--gt-topic",
         metavar="TOPIC",
@@ -57,25 +102,6 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help="with --gt-topic: and the camera moved at least M metres in between (a parked "
         "camera does not revisit itself)",
-    )
-    group.add_argument(
-        "--poses-topic",
-        metavar="TOPIC",
-        help="pose topic for the trajectory picture (default: --gt-topic)",
-    )
-    group.add_argument(
-        "--source",
-        type=Path,
-        metavar="LOG",
-        help="the log that was annotated, to read images and poses from when OUT.mcap is a "
-        "sidecar (its sha256 must match the one recorded)",
-    )
-    group.add_argument(
-        "--plot",
-        type=Path,
-        metavar="DIR",
-        help="write pr_curve.png, difference_matrix.png and, with a pose topic, "
-        "trajectory.png into DIR (needs matplotlib: pip install 'doseqslam-logs[plot]')",
     )
 
 

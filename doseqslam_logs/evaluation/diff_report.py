@@ -8,7 +8,6 @@ matplotlib is the `plot` extra, imported here only.
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,6 @@ from .fleet_diff import BatchRun, Comparison, FleetDiff, LogRow, row_cells
 from .pose_ground_truth import frame_poses
 
 TRAJECTORIES = 3  # logs drawn, those that changed most
-DPI = 110
 
 
 def write_report(path: Path, result: FleetDiff | Comparison, gate: Gate | None) -> list[Path]:
@@ -35,14 +33,16 @@ def write_report(path: Path, result: FleetDiff | Comparison, gate: Gate | None) 
     check_report(path)
     from matplotlib.figure import Figure
 
+    from .plots import save_png
+
     fleet = result if isinstance(result, FleetDiff) else _as_fleet(result)
     stem = path.with_suffix("")
-    written = [_save(_changes_figure(Figure, fleet), Path(f"{stem}-changes.png"))]
+    written = [save_png(_changes_figure(Figure, fleet), Path(f"{stem}-changes.png"))]
     drawn: list[tuple[LogRow, Path]] = []
     for row in sorted(fleet.rows, key=lambda r: -r.changed)[:TRAJECTORIES]:
         figure = _trajectory_figure(Figure, row)
         if row.changed and figure is not None:
-            drawn.append((row, _save(figure, Path(f"{stem}-trajectory-{len(drawn) + 1}.png"))))
+            drawn.append((row, save_png(figure, Path(f"{stem}-trajectory-{len(drawn) + 1}.png"))))
     written += [p for _, p in drawn]
     text = _markdown(fleet, gate, written[0], drawn)
     with atomic_output(path) as stream:
@@ -70,14 +70,6 @@ def _as_fleet(comparison: Comparison) -> FleetDiff:
     b = BatchRun(Path(diff.b.path).name, diff.b.source_sha256, Path(diff.b.path))
     row = LogRow(Path(diff.a.source_file).name or a.name, a.sha256, "compared", a, b, comparison)
     return FleetDiff(Path(diff.a.path), Path(diff.b.path), [row], comparison.truth is not None)
-
-
-def _save(figure: Any, path: Path) -> Path:
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=DPI, metadata={"Software": None})
-    with atomic_output(path) as stream:
-        stream.write(buffer.getvalue())
-    return path
 
 
 def _changes_figure(figure_class: Any, fleet: FleetDiff) -> Any:

@@ -81,10 +81,11 @@ class Comparison:
 def compare(a: Path, b: Path, tolerance_ns: int, truth: TruthOptions | None) -> Comparison:
     """`diff A B`: the reported loop closures paired by time; with `truth`, each version
     scored as `evaluate` scores it alone and every differing pair labelled."""
-    diff = diff_logs(a, b, tolerance_ns)
+    log_a, log_b = read_annotations(a), read_annotations(b)  # once each, for both uses
+    diff = diff_logs(log_a, log_b, tolerance_ns)
     if truth is None:
         return Comparison(diff, None)
-    report_a, report_b = evaluate_log(a, truth.a), evaluate_log(b, truth.b)
+    report_a, report_b = evaluate_log(log_a, truth.a), evaluate_log(log_b, truth.b)
     return Comparison(diff, label_diff(diff, report_a, report_b, truth.tolerance))
 
 
@@ -341,10 +342,11 @@ def _row(
     present = a if side == "a" else b
     if present is None or present.output is None:
         return LogRow(run.name, run.sha256, state, a, b)
-    pairs = len(read_annotations(present.output).reported_loop_closures)
+    log = read_annotations(present.output)
+    pairs = len(log.reported_loop_closures)
     score = None
     if truth is not None:
-        score = VersionScore.of(evaluate_log(present.output, truth.a if side == "a" else truth.b))
+        score = VersionScore.of(evaluate_log(log, truth.a if side == "a" else truth.b))
     return LogRow(run.name, run.sha256, state, a, b, None, pairs, score, side)
 
 

@@ -79,9 +79,12 @@ class LogReport:
         )
 
 
-def evaluate_log(log: str | Path, options: LogEvaluationOptions | None = None) -> LogReport:
-    """Score the run recorded in an annotated log (or sidecar) against ground truth, and draw
-    it when `options.plot` names a folder, as `evaluate OUT.mcap` does.
+def evaluate_log(
+    log: AnnotatedLog | str | Path, options: LogEvaluationOptions | None = None
+) -> LogReport:
+    """Score the run recorded in an annotated log (or sidecar; a path, or already read)
+    against ground truth, and draw it when `options.plot` names a folder, as `evaluate
+    OUT.mcap` does.
 
     Raises UsageError (no ground truth, a sidecar without source, matplotlib missing for
     plots, ...), SourceError (not an annotated log), GroundTruthError.
@@ -89,7 +92,7 @@ def evaluate_log(log: str | Path, options: LogEvaluationOptions | None = None) -
     options = options or LogEvaluationOptions()
     check_options(options)
     plots = _plots_module() if options.plot is not None else None  # fail before the work
-    annotated = read_annotations(log)
+    annotated = log if isinstance(log, AnnotatedLog) else read_annotations(log)
     inputs = _Inputs(options, annotated)
     gt, gt_info = _ground_truth(inputs)
     result = evaluate_annotated_log(annotated, gt, options.tolerance)

@@ -65,7 +65,8 @@ def _titles(figure: Figure, axes: Axes, title: str, subtitle: str) -> None:
     axes.set_title("\n".join(textwrap.wrap(subtitle, 95)), fontsize=8.5)
 
 
-def _save(figure: Figure, path: Path) -> Path:
+def save_png(figure: Figure, path: Path) -> Path:
+    """Write `figure` as a PNG at `path`, atomically."""
     buffer = io.BytesIO()
     # No "Software" entry: the same picture gives the same bytes across matplotlib versions.
     figure.savefig(buffer, format="png", dpi=DPI, metadata={"Software": None})
@@ -147,7 +148,7 @@ def pr_curve_figure(raw: Evaluation, verified: Evaluation | None, title: str) ->
 
 def plot_pr_curve(path: Path, raw: Evaluation, verified: Evaluation | None, title: str) -> Path:
     """Write `pr_curve_figure` as a PNG."""
-    return _save(pr_curve_figure(raw, verified, title), path)
+    return save_png(pr_curve_figure(raw, verified, title), path)
 
 
 # -- difference matrix --------------------------------------------------------------------
@@ -243,7 +244,7 @@ def plot_difference_matrix(
     title: str,
 ) -> Path:
     """Write `difference_matrix_figure` as a PNG."""
-    return _save(difference_matrix_figure(matrix, detections, gt, title), path)
+    return save_png(difference_matrix_figure(matrix, detections, gt, title), path)
 
 
 # -- trajectory ---------------------------------------------------------------------------
@@ -302,6 +303,6 @@ def plot_trajectory(
     pose_topic: str,
 ) -> Path:
     """Write `trajectory_figure` as a PNG."""
-    return _save(
+    return save_png(
         trajectory_figure(track_positions, frame_positions, detections, title, pose_topic), path
     )
