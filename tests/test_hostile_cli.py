@@ -367,6 +367,7 @@ FLOAT_PARAMETERS = [
     "place_index_interval_s",
 ]
 FLOAT_VERIFICATION = [
+    "second_guess_factor",
     "ratio",
     "ransac_threshold_px",
     "confidence",

@@ -63,6 +63,11 @@ class VerificationParameters:
     # RTAB-Map and the samples, daylight and dark: no false pair at 12 and above, the first at
     # 10; 20 keeps twice that margin (docs/results.md, "Fewer inliers on enlarged frames").
     small_frame_min_inliers: int = 20
+    # A pair found on a second guess (a next-best trajectory of the detector, or the previous
+    # sequence's place continued) needs this many times the inliers of a first guess: each
+    # further place tried for one query is one more chance to accept a look-alike
+    # (docs/research/2026-12-03-precision.md, "Second guesses"). 1: the same bar.
+    second_guess_factor: float = 2.0
     refine_radius: int = 25  # frames: the match may move to the best frame within +-r
     # Above 1 / query_interval_s frames per second, one candidate in s = that many frames is
     # checked, windows are searched coarse to fine and accepted offsets tracked
@@ -106,6 +111,10 @@ class VerificationParameters:
                 raise ParameterError(
                     f"{name} must be >= {MIN_ACCEPTABLE_INLIERS}, got {getattr(self, name)}"
                 )
+        if not self.second_guess_factor >= 1:
+            raise ParameterError(
+                f"second_guess_factor must be >= 1, got {self.second_guess_factor}"
+            )
         if self.detail_below < 0:
             raise ParameterError(f"detail_below must be >= 0, got {self.detail_below}")
         if self.refine_radius < 0:

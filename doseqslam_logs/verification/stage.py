@@ -32,6 +32,10 @@ is hopeless (under half of min_inliers) for two queries in a row is not tried ag
 sequence, the rule of high frame rates below: on Lip6 Outdoor it checked 43 % fewer frame pairs
 for 4 fewer true pairs (278 of 282), and on the tuning sets the same figures or one pair better
 (docs/results.md). Rejected pairs are kept with their verdict.
+A pair found anywhere but at the detector's own match (an alternative, or the previous
+sequence's place continued, below) is a second guess and needs `second_guess_factor` times
+the inliers (`_second_guess`): every further place tried for a query is one more chance to
+pass a look-alike a few metres off.
 
 High frame rates (`query_stride` > 1: more than one frame per `query_interval_s`): neighbouring
 frames are near copies, and checking each of them against 2r + 1 frames would cost more than
@@ -135,6 +139,8 @@ WALK_RADII = 2
 # A bracketing looks at the query's checked frames this many refine_radius either side of the
 # refined match, besides its window (`Verifier._bracketed`).
 BRACKET_RADII = 2
+# The rejection of a pair found on a second guess under its higher bar (`_second_guess`).
+SECOND_GUESS_REASON = "too few inliers for a second guess"
 # `PairCheck.proposal` of a pair accepted where the previous sequence's verified place
 # continues (`Hint`), at a high frame rate.
 CONTINUED = -1
@@ -405,6 +411,8 @@ class Verifier:
                 proposed = self._proposed(decision, z, k, hint)
                 check = self._check(proposed, decision.database_size, stride, last[k], {}, seen)
                 last[k] = check
+                if k != 0:
+                    check = self._second_guess(check)
                 runs[k] = runs[k] + 1 if self._hopeless(check.verdict) else 0
                 result = self._numbered(candidate, check, k, alternatives)
                 if kept is None or check.accepted or k == 0:  # rejected: the own check
@@ -564,9 +572,25 @@ class Verifier:
             verdict = self._moved(query, rejected.candidate, refined, verdict)
             hopeless = self._hopeless(verdict)
             hopeless_runs[number - 1] = hopeless_runs[number - 1] + 1 if hopeless else 0
-            if verdict.accepted:
-                return PairCheck(rejected.candidate, refined, verdict, proposal=number)
+            check = self._second_guess(PairCheck(rejected.candidate, refined, verdict, number))
+            if check.accepted:
+                return check
         return rejected
+
+    def _second_guess(self, check: PairCheck) -> PairCheck:
+        """An accepted check of a place other than the detector's own as it stands at the
+        higher bar of a second guess (`second_guess_factor` x the pair's min_inliers), else
+        rejected SECOND_GUESS_REASON. Its tracking is unchanged: the place it found stays where
+        the proposal's next check looks first."""
+        if not check.accepted or self.params.second_guess_factor == 1:
+            return check
+        pair = self._features([check.candidate.query_index, check.refined_match_index])
+        enlarged = any(features.scale > 1 for features in pair.values())
+        needed = self.params.small_frame_min_inliers if enlarged else self.params.min_inliers
+        if check.verdict.inliers >= self.params.second_guess_factor * needed:
+            return check
+        verdict = dataclasses.replace(check.verdict, accepted=False, reason=SECOND_GUESS_REASON)
+        return dataclasses.replace(check, verdict=verdict)
 
     def _moved(
         self, query: FrameFeatures, candidate: Candidate, refined: int, verdict: Verdict
