@@ -63,7 +63,7 @@ def test_second_guesses_need_twice_the_inliers_and_the_noisy_cell_has_no_false_p
     reported = annotated.reported_loop_closures
     assert all(lc.inliers >= 2 * BAR for lc in reported if lc.proposal != 0)
     assert all(lc.inliers >= BAR for lc in reported)
-    # A turned-down second guess is recorded as the detector's own check of that query.
+    # A turned-down second guess is mostly overwritten by the detector's own rejected check.
     turned_down = [
         lc for lc in annotated.loop_closures if lc.rejection_reason == SECOND_GUESS_REASON
     ]

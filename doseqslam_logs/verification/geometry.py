@@ -196,8 +196,9 @@ def verify_pair(
         or query.descriptors.shape[1:] != match.descriptors.shape[1:]
     ):
         raise ValueError(f"cannot match {query.detector} features against {match.detector}")
-    if max(query.scale, match.scale) > 1:  # an enlarged frame: fewer features to agree on
-        params = dataclasses.replace(params, min_inliers=params.small_frame_min_inliers)
+    needed_inliers = pair_min_inliers(query, match, params)
+    if needed_inliers != params.min_inliers:  # a replace validates: not on every pair
+        params = dataclasses.replace(params, min_inliers=needed_inliers)
     model: Model = "F" if intrinsics is None else "E"
     needed = max(_MIN_POINTS[model], params.min_inliers)
     if min(query.count, match.count) < needed:
@@ -213,6 +214,16 @@ def verify_pair(
         inliers = _fundamental_inliers(p_query, p_match, threshold, params)
         return _verdict(inliers, tested, model, params)
     return _essential_verdict(p_query, p_match, threshold, tested, params, intrinsics)
+
+
+def pair_min_inliers(
+    query: FrameFeatures, match: FrameFeatures, params: VerificationParameters
+) -> int:
+    """The inliers a pair needs: `small_frame_min_inliers` when a frame of it was enlarged (its
+    `scale` exceeds 1: a thumbnail has fewer features to agree on), else `min_inliers`."""
+    if max(query.scale, match.scale) > 1:
+        return params.small_frame_min_inliers
+    return params.min_inliers
 
 
 def refine_match(

@@ -105,6 +105,7 @@ from .geometry import (
     best_verdict,
     bracketed_match,
     extract_features,
+    pair_min_inliers,
     side_of_query,
     verify_pair,
 )
@@ -584,9 +585,9 @@ class Verifier:
         the proposal's next check looks first."""
         if not check.accepted or self.params.second_guess_factor == 1:
             return check
-        pair = self._features([check.candidate.query_index, check.refined_match_index])
-        enlarged = any(features.scale > 1 for features in pair.values())
-        needed = self.params.small_frame_min_inliers if enlarged else self.params.min_inliers
+        query, match = check.candidate.query_index, check.refined_match_index
+        pair = self._features([query, match])
+        needed = pair_min_inliers(pair[query], pair[match], self.params)
         if check.verdict.inliers >= self.params.second_guess_factor * needed:
             return check
         verdict = dataclasses.replace(check.verdict, accepted=False, reason=SECOND_GUESS_REASON)
