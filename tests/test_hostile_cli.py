@@ -367,10 +367,10 @@ FLOAT_PARAMETERS = [
     "place_index_interval_s",
 ]
 FLOAT_VERIFICATION = [
-    "second_guess_factor",
     "ratio",
     "ransac_threshold_px",
     "confidence",
+    "second_guess_factor",
     "query_interval_s",
     "max_rotation_deg",
     "leave_distance_m",
