@@ -190,7 +190,10 @@ def summary_line(result: AnnotateResult) -> str:
     verification = result.verification
     if verification is not None:
         stats = verification.stats
-        pose = f"essential matrix, intrinsics from {verification.intrinsics_source}"
+        source = verification.intrinsics_source
+        pose = f"essential matrix, intrinsics from {source}"
+        if source == "assumed":
+            pose = "essential matrix, assumed intrinsics"
         model = pose if verification.intrinsics else "fundamental matrix, no intrinsics"
         motion = verification.motion_summary
         checked = verification_summary(stats, verification.wall_s, model, motion)
@@ -252,12 +255,25 @@ def _verification_json(result: AnnotateResult) -> dict[str, object] | None:
 
 
 def warnings(result: AnnotateResult) -> list[str]:
-    """The first example of each kind of skipped frame, of a clock jump, and the feature-poor
-    warnings (for stderr)."""
+    """The first example of each kind of skipped frame, of a clock jump, the feature-poor
+    warnings and unusable intrinsics (for stderr)."""
     counts = result.counts
     lines = [f"skipped ({why}), first: {detail}" for why, detail in counts.first_skip.items()]
     if result.health is not None and result.health.poor:
         lines.append(result.health.note())
+    verification = result.verification
+    if verification is not None and verification.unusable_camera_info:
+        k = verification.intrinsics
+        how = (
+            "verified with the fundamental matrix"
+            if k is None
+            else f"verified with an assumed pinhole camera (focal length {k.fx:g} px, the "
+            "larger image side, principal point at the centre) and no metric poses"
+        )
+        lines.append(
+            f"{verification.unusable_camera_info}; {how}; --intrinsics FX,FY,CX,CY gives the "
+            "camera's"
+        )
     if counts.first_clock_jump:
         lines.append(
             f"camera clock jump bridged with the log time, first: {counts.first_clock_jump} "

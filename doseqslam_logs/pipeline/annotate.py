@@ -43,7 +43,7 @@ from ..sinks.output_format import OutputFormat
 from ..sinks.visualization import Visualization, read_trajectory, visual_loops
 from ..sources import Log, is_mcap_file, open_source, pick_image_topic
 from ..sources.base import Promise, Source
-from ..sources.camera_info import read_camera_info
+from ..sources.camera_info import find_camera_info
 from ..sources.frame import Frame
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.images import decode_gray
@@ -69,7 +69,13 @@ from .decode import (
 from .feature_health import FeatureHealth, check_feasibility, run_feature_health
 from .feature_spill import FeatureSpill, feature_spill_for
 from .frame_spill import spilled_frame_store
-from .metric_edges import MetricEdges, OdometryFrames, metric_edges, read_odometry
+from .metric_edges import (
+    NO_INTRINSICS,
+    MetricEdges,
+    OdometryFrames,
+    metric_edges,
+    read_odometry,
+)
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
 
@@ -77,6 +83,8 @@ HASH_BLOCK = 1 << 20
 
 # The stages of a run, as `annotate_log(stage=...)` announces them when each begins.
 STAGES = ("replay", "verify", "metric", "write")
+# Verification.intrinsics_source of a camera assumed where the CameraInfo's K is unusable.
+ASSUMED = "assumed"
 StageCallback = Callable[[str], None]
 
 
@@ -156,13 +164,28 @@ class Verification:
 
     params: VerificationParameters
     intrinsics: Intrinsics | None
-    intrinsics_source: str  # "--intrinsics", the CameraInfo topic, or "" (none)
+    # "--intrinsics", the CameraInfo topic, "assumed" (`Intrinsics.assumed`), or "" (none)
+    intrinsics_source: str
     decisions: dict[int, VerifiedDecision]  # by sequence id
     stats: VerificationStats  # seconds summed over the verification threads
     wall_s: float = 0.0  # wall time of the whole stage
     metric: MetricEdges | None = None  # the accepted pairs' metric poses (the metric stage)
     # The motion rule's evidence: "odometry TOPIC", or "images" without a pose topic.
     motion_evidence: str = "images"
+    # The CameraInfo messages whose K cannot be a camera, described ("" none).
+    unusable_camera_info: str = ""
+
+    @property
+    def metric_intrinsics(self) -> Intrinsics | None:
+        """The intrinsics metric poses may use: not an assumed camera's."""
+        return None if self.intrinsics_source == ASSUMED else self.intrinsics
+
+    @property
+    def no_intrinsics_reason(self) -> str:
+        """A pair's metric reason when there are no intrinsics to fit with."""
+        if not self.unusable_camera_info:
+            return NO_INTRINSICS
+        return f"no intrinsics ({self.unusable_camera_info}; no --intrinsics)"
 
     @property
     def motion_summary(self) -> str:
@@ -197,18 +220,27 @@ def verify_decisions(
     options: AnnotateOptions,
     features: FeatureSpill | None = None,
     odometry: OdometryFrames | None = None,
+    frame_size: tuple[int, int] | None = None,
 ) -> Verification | None:
     """The verification stage over a finished replay (None when it is off); `features`: the
     frames' features the replay extracted, if it did; `odometry`: the camera's poses at the
-    frames, for the motion rule (None: it looks at the images). `log`: the run's open Source
-    (or a path)."""
+    frames, for the motion rule (None: it looks at the images); `frame_size`: (width, height)
+    of the frames, for an assumed camera where the CameraInfo's K is unusable. `log`: the
+    run's open Source (or a path)."""
     if options.verification is None:
         return None
-    intrinsics, origin = options.intrinsics, "--intrinsics"
+    intrinsics, origin, unusable = options.intrinsics, "--intrinsics", ""
     if intrinsics is None:
-        info = read_camera_info(log, topic)
-        intrinsics = None if info is None else Intrinsics(info.fx, info.fy, info.cx, info.cy)
-        origin = "" if info is None else info.topic
+        search = find_camera_info(log, topic)
+        info, unusable = search.info, search.describe_unusable()
+        if info is not None:
+            intrinsics, origin = Intrinsics(info.fx, info.fy, info.cx, info.cy), info.topic
+        elif unusable and frame_size is not None:
+            # A K that is not a camera says the camera is a pinhole one of unknown focal
+            # length: the fundamental matrix's extra freedom passes look-alikes.
+            intrinsics, origin = Intrinsics.assumed(*frame_size), ASSUMED
+        else:
+            origin = ""
     start = time.perf_counter()
     checked, stats = verify_in_threads(
         result.decisions,
@@ -224,7 +256,14 @@ def verify_decisions(
     wall_s = time.perf_counter() - start
     evidence = "images" if odometry is None else f"odometry {odometry.topic}"
     return Verification(
-        options.verification, intrinsics, origin, verified, stats, wall_s, motion_evidence=evidence
+        options.verification,
+        intrinsics,
+        origin,
+        verified,
+        stats,
+        wall_s,
+        motion_evidence=evidence,
+        unusable_camera_info=unusable,
     )
 
 
@@ -275,11 +314,13 @@ class _TimesRecorder:
         self.log_times = array("q")
         self.stamps = array("q")  # NO_STAMP: no header
         self.first_size = ""  # "WxH" of the first frame, for the feature-poor warning
+        self.first_shape: tuple[int, int] | None = None  # (width, height) of the first frame
 
     def __call__(self, frames: Iterable[Frame]) -> Iterator[Frame]:
         for frame in frames:
             if not self.log_times:
-                self.first_size = f"{frame.image.shape[1]}x{frame.image.shape[0]}"
+                self.first_shape = (frame.image.shape[1], frame.image.shape[0])
+                self.first_size = "{}x{}".format(*self.first_shape)
             self.log_times.append(frame.log_time_ns)
             stamp = frame.header_stamp_ns
             self.stamps.append(NO_STAMP if stamp is None else stamp)
@@ -597,7 +638,7 @@ def _run(
                 source, frame_times, options.time_source, options.odometry_topic
             )
         verification = verify_decisions(
-            source, topic, result, frame_times, options, features, odometry
+            source, topic, result, frame_times, options, features, odometry, recorder.first_shape
         )
     if verification is not None:
         _announce(stage, "metric")
@@ -606,13 +647,14 @@ def _run(
             topic,
             frame_times,
             verification.decisions,
-            verification.intrinsics,
+            verification.metric_intrinsics,
             verification.params,
             time_source=options.time_source,
             odometry_topic=options.odometry_topic,
             max_pixels=options.max_pixels,
             workers=options.workers,
             odometry=odometry,
+            no_intrinsics=verification.no_intrinsics_reason,
         )
     sha256 = waiting.result(digest)
     metadata = run_metadata(

@@ -345,11 +345,13 @@ def metric_edges(
     progress: Callable[[int], None] | None = None,
     workers: int = 2,
     odometry: OdometryFrames | Literal["read"] | None = "read",
+    no_intrinsics: str = NO_INTRINSICS,
 ) -> MetricEdges:
     """The metric pose of every accepted pair (module docstring), fitted on `workers` threads.
     `log`: the run's open Source (or a path, opened here); `odometry_topic`: None the log's
     default pose topic (`default_pose_topic`), "" none; `odometry`: the odometry at the
-    frames when the run has read it already (`read_odometry`), else "read" here.
+    frames when the run has read it already (`read_odometry`), else "read" here;
+    `no_intrinsics`: each pair's reason when `intrinsics` is None.
 
     Raises SourceError when the log cannot be read again.
     """
@@ -357,7 +359,7 @@ def metric_edges(
     pairs = accepted_pairs(decisions, frame_times, time_source, verification.query_interval_s)
     stats = MetricStats(pairs=len(pairs))
     if intrinsics is None or not pairs:
-        poses: dict[PairKey, MetricPose | str] = {p.key: NO_INTRINSICS for p in pairs}
+        poses: dict[PairKey, MetricPose | str] = {p.key: no_intrinsics for p in pairs}
         return _finished(MetricEdges(poses, stats), start)
     chosen, not_fitted = thinned(pairs, interval_s)
     poses = {p.key: not_fitted for p in pairs}

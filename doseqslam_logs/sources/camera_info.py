@@ -4,11 +4,18 @@
 Geometric verification fits an essential matrix (and recovers the relative pose) when the
 intrinsics are known. The CameraInfo topic chosen is the one sharing the longest topic prefix
 with the image topic (/camera/image/compressed -> /camera/camera_info).
+
+A CameraInfo whose K cannot be a camera (all zero, as ROS writes for an uncalibrated camera,
+NaN, a focal length that is not positive) is skipped and counted by reason; the first usable
+one of the topic's first MAX_CAMERA_INFOS messages is the camera's (`find_camera_info`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from itertools import islice
 from typing import Any
 
 from . import Log, opened
@@ -19,6 +26,9 @@ CAMERA_INFO_TYPES = (
     "foxglove.CameraCalibration",
     "foxglove_msgs/msg/CameraCalibration",
 )
+# CameraInfo messages looked at for a usable K: a camera calibrated after the log started
+# publishes zeros first; a topic of zeros is not read to its end.
+MAX_CAMERA_INFOS = 100
 
 
 @dataclass(frozen=True)
@@ -34,10 +44,28 @@ class CameraInfo:
     cy: float
 
 
-def read_camera_info(log: Log, image_topic: str) -> CameraInfo | None:
-    """The first CameraInfo of the camera of `image_topic`, or None when the log has none
-    (or only ones without a focal length, e.g. an uncalibrated camera: K all zero). The
-    camera's CameraInfo topic is the one sharing the longest prefix with the image topic.
+@dataclass
+class CameraInfoSearch:
+    """What the log says of the camera's intrinsics: the first usable CameraInfo (None if
+    there is none), its topic ("" without one), and the unusable messages seen, by reason."""
+
+    topic: str = ""
+    info: CameraInfo | None = None
+    unusable: Counter[str] = field(default_factory=Counter)
+
+    def describe_unusable(self) -> str:
+        """E.g. "12 CameraInfo of /camera/camera_info with a K that is not a camera (K all
+        zero: 12)"; "" when every message seen was usable."""
+        total = sum(self.unusable.values())
+        if not total:
+            return ""
+        reasons = ", ".join(f"{why}: {n}" for why, n in sorted(self.unusable.items()))
+        return f"{total} CameraInfo of {self.topic} with a K that is not a camera ({reasons})"
+
+
+def find_camera_info(log: Log, image_topic: str) -> CameraInfoSearch:
+    """The camera of `image_topic`'s CameraInfo topic (the one sharing the longest prefix
+    with the image topic) and its first usable message among the first MAX_CAMERA_INFOS.
 
     Raises SourceError when the log cannot be read.
     """
@@ -45,9 +73,23 @@ def read_camera_info(log: Log, image_topic: str) -> CameraInfo | None:
         topics = [c.topic for c in source.channels() if _is_camera_info(c.message_type)]
         topic = _closest(topics, image_topic)
         if topic is None:
-            return None
-        first = next(iter(source.messages(topic)), None)
-    return None if first is None else _camera_info(topic, first.message)
+            return CameraInfoSearch()
+        search = CameraInfoSearch(topic)
+        for item in islice(source.messages(topic), MAX_CAMERA_INFOS):
+            info = _camera_info(topic, item.message)
+            if isinstance(info, CameraInfo):
+                search.info = info
+                break
+            search.unusable[info] += 1
+    return search
+
+
+def read_camera_info(log: Log, image_topic: str) -> CameraInfo | None:
+    """The first usable CameraInfo of the camera of `image_topic`, or None (`find_camera_info`).
+
+    Raises SourceError when the log cannot be read.
+    """
+    return find_camera_info(log, image_topic).info
 
 
 def _is_camera_info(message_type: str) -> bool:
@@ -71,13 +113,26 @@ def shared_prefix(topic: str, other: str) -> int:
     return common
 
 
-def _camera_info(topic: str, message: Any) -> CameraInfo | None:
-    k = getattr(message, "k", None)
+def _camera_info(topic: str, message: Any) -> CameraInfo | str:
+    """The message's intrinsics, or why they cannot be a camera's."""
+    k: Any = getattr(message, "k", None)
     if k is None:
         k = getattr(message, "K", None)
-    if k is None or len(k) != 9:
-        return None
-    fx, fy, cx, cy = float(k[0]), float(k[4]), float(k[2]), float(k[5])
+    try:
+        values = [float(v) for v in k]
+    except (TypeError, ValueError):
+        return "no K"
+    if len(values) != 9:
+        return f"K of {len(values)} values"
+    if not all(map(math.isfinite, values)):
+        return "K not finite"
+    if not any(values):
+        return "K all zero"
+    fx, fy, cx, cy = values[0], values[4], values[2], values[5]
     if not (fx > 0 and fy > 0):
-        return None
-    return CameraInfo(topic, int(message.width), int(message.height), fx, fy, cx, cy)
+        return "focal length not positive"
+    try:
+        width, height = int(message.width), int(message.height)
+    except (AttributeError, TypeError, ValueError, OverflowError):
+        width = height = 0
+    return CameraInfo(topic, width, height, fx, fy, cx, cy)

@@ -65,6 +65,15 @@ class Intrinsics:
         if not all(math.isfinite(v) for v in values) or self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"intrinsics need finite values and fx, fy > 0, got {values}")
 
+    @classmethod
+    def assumed(cls, width: int, height: int) -> Intrinsics:
+        """A pinhole guess for a camera whose K is unusable: focal length the larger image
+        side (a 53-degree field of view across it), principal point at the centre. On
+        drive_loops without its CameraInfo, focal lengths 0.5 to 1.2 times the true one's
+        side gave no false pair, the fundamental matrix 11 (docs/research)."""
+        focal = float(max(width, height, 1))
+        return cls(focal, focal, width / 2, height / 2)
+
     def matrix(self) -> npt.NDArray[np.float64]:
         """The 3x3 camera matrix K."""
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], np.float64)
