@@ -190,9 +190,8 @@ def summary_line(result: AnnotateResult) -> str:
     verification = result.verification
     if verification is not None:
         stats = verification.stats
-        source = verification.intrinsics_source
-        pose = f"essential matrix, intrinsics from {source}"
-        if source == "assumed":
+        pose = f"essential matrix, intrinsics from {verification.intrinsics_source}"
+        if verification.intrinsics_assumed:
             pose = "essential matrix, assumed intrinsics"
         model = pose if verification.intrinsics else "fundamental matrix, no intrinsics"
         motion = verification.motion_summary

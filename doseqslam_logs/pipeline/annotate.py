@@ -176,9 +176,14 @@ class Verification:
     unusable_camera_info: str = ""
 
     @property
+    def intrinsics_assumed(self) -> bool:
+        """Whether the check used `Intrinsics.assumed` (the CameraInfo's K unusable)."""
+        return self.intrinsics_source == ASSUMED
+
+    @property
     def metric_intrinsics(self) -> Intrinsics | None:
         """The intrinsics metric poses may use: not an assumed camera's."""
-        return None if self.intrinsics_source == ASSUMED else self.intrinsics
+        return None if self.intrinsics_assumed else self.intrinsics
 
     @property
     def no_intrinsics_reason(self) -> str:
@@ -313,18 +318,21 @@ class _TimesRecorder:
         # Two int64 arrays, 16 B a frame (a list of tuples took about 130).
         self.log_times = array("q")
         self.stamps = array("q")  # NO_STAMP: no header
-        self.first_size = ""  # "WxH" of the first frame, for the feature-poor warning
         self.first_shape: tuple[int, int] | None = None  # (width, height) of the first frame
 
     def __call__(self, frames: Iterable[Frame]) -> Iterator[Frame]:
         for frame in frames:
             if not self.log_times:
                 self.first_shape = (frame.image.shape[1], frame.image.shape[0])
-                self.first_size = "{}x{}".format(*self.first_shape)
             self.log_times.append(frame.log_time_ns)
             stamp = frame.header_stamp_ns
             self.stamps.append(NO_STAMP if stamp is None else stamp)
             yield frame
+
+    @property
+    def first_size(self) -> str:
+        """The first frame's size as WxH ("" before one), for the feature-poor warning."""
+        return "" if self.first_shape is None else "{}x{}".format(*self.first_shape)
 
     def frame_times(self) -> FrameTimes:
         return FrameTimes(

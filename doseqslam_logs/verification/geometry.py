@@ -68,9 +68,9 @@ class Intrinsics:
     @classmethod
     def assumed(cls, width: int, height: int) -> Intrinsics:
         """A pinhole guess for a camera whose K is unusable: focal length the larger image
-        side (a 53-degree field of view across it), principal point at the centre. On
-        drive_loops without its CameraInfo, focal lengths 0.5 to 1.2 times the true one's
-        side gave no false pair, the fundamental matrix 11 (docs/research)."""
+        side (a 53-degree field of view across it), principal point at the centre. The
+        essential fit's rotation limit and bracketing tolerate a focal length well off the
+        true one, where the fundamental matrix passes look-alikes."""
         focal = float(max(width, height, 1))
         return cls(focal, focal, width / 2, height / 2)
 
