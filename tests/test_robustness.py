@@ -473,6 +473,26 @@ def test_stale_temporaries_of_dead_processes_are_removed(tmp_path: Path) -> None
     assert not scratch.exists()
 
 
+@pytest.mark.parametrize("opener", ["atomic_output", "scratch_file"])
+def test_an_interrupt_just_after_the_temporary_is_made_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, opener: str
+) -> None:
+    # SIGTERM becomes a KeyboardInterrupt that lands between any two lines; here between the
+    # open() that made the temporary file and the line that would have noted its name (a
+    # run stopped as the write stage began left `.out.mcap.PID.RANDOM.tmp` behind).
+    real_open = os.open
+
+    def open_then_interrupted(path: str, flags: int, mode: int = 0o777) -> int:
+        os.close(real_open(path, flags, mode))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("doseqslam_logs.sinks.atomic.os.open", open_then_interrupted)
+    context = {"atomic_output": atomic_output, "scratch_file": scratch_file}[opener]
+    with pytest.raises(KeyboardInterrupt), context(tmp_path / "out.mcap"):
+        pass
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_jpeg_that_libjpeg_decodes_around_damage_is_corrupt(shared_data: Path) -> None:
     """OpenCV returns pixels for a JPEG with damaged scan data (gray or garbled rows) and
     libjpeg only complains on stderr: that complaint makes it a corrupt image."""

@@ -110,17 +110,28 @@ def remove_stale_temps(final: Path) -> list[Path]:
     return removed
 
 
-def _create_temp(final: Path) -> tuple[Path, BinaryIO]:
+def _create_temp(final: Path, created: list[Path]) -> BinaryIO:
+    """A new temporary file beside `final`, its path appended to `created` before it exists:
+    a KeyboardInterrupt (Ctrl-C, SIGTERM) can land between any two lines, and whoever cleans
+    up must know the name of a file that open() has just made."""
     for _ in range(100):
         path = temp_name(final)
+        created.append(path)
         try:
             # O_EXCL: never write into someone else's file; mode 0o666 lets the umask decide,
             # as it would for a plain open().
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:
+            created.remove(path)  # not ours: never removed
             continue
-        return path, os.fdopen(fd, "wb")
+        return os.fdopen(fd, "wb")
     raise FileExistsError(f"no free temporary name beside {final}")
+
+
+def _remove(paths: list[Path]) -> None:
+    for path in paths:
+        with contextlib.suppress(OSError):
+            path.unlink()
 
 
 def _fsync_directory(folder: Path) -> None:
@@ -146,20 +157,20 @@ def atomic_output(final_path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
     final = Path(final_path)
     check_output_path(final)
     remove_stale_temps(final)
+    created: list[Path] = []
     try:
-        temp, stream = _create_temp(final)
-    except OSError as exc:
-        raise OutputError(f"{final}: cannot create the output: {exc.strerror or exc}") from exc
-    try:
+        try:
+            stream = _create_temp(final, created)
+        except OSError as exc:
+            raise OutputError(f"{final}: cannot create the output: {exc.strerror or exc}") from exc
         with stream:
             yield stream
             stream.flush()
             os.fsync(stream.fileno())
         check_output_path(final)  # again: it may have appeared while we wrote
-        os.replace(temp, final)
+        os.replace(created[-1], final)
     except BaseException as exc:
-        with contextlib.suppress(OSError):
-            temp.unlink()
+        _remove(created)
         if isinstance(exc, DoseqslamError) or not isinstance(exc, Exception):
             raise
         raise OutputError(f"{final}: cannot write the output: {exc}") from exc
@@ -172,15 +183,14 @@ def scratch_file(final_path: str | os.PathLike[str]) -> Iterator[Path]:
     later run removes it if this process is killed), removed when the block ends."""
     final = Path(final_path)
     check_output_path(final)
+    created: list[Path] = []
     try:
-        path, stream = _create_temp(final)
-    except OSError as exc:
-        raise OutputError(
-            f"{final}: cannot create a temporary file: {exc.strerror or exc}"
-        ) from exc
-    stream.close()
-    try:
-        yield path
+        try:
+            _create_temp(final, created).close()
+        except OSError as exc:
+            raise OutputError(
+                f"{final}: cannot create a temporary file: {exc.strerror or exc}"
+            ) from exc
+        yield created[-1]
     finally:
-        with contextlib.suppress(OSError):
-            path.unlink()
+        _remove(created)
