@@ -32,7 +32,8 @@ from doseqslam_logs.cli.main import build_parser, main
 from doseqslam_logs.cli.params_args import run_parameters
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import UsageError
-from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log, source_sha256
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.sources.digest import source_sha256
 
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 

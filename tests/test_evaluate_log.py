@@ -282,7 +282,21 @@ def test_sidecar_reads_poses_from_the_source_log(annotated, sidecar, capsys) -> 
     code, _, err = run_cli(
         capsys, "evaluate", sidecar, "--gt-topic", POSES, "--radius", "2", "--source", wrong
     )
-    assert code == ExitCode.USAGE and "sha256 differs" in err
+    assert code == ExitCode.USAGE and "not the log" in err and "--no-source-check" in err
+    code, stdout, _ = run_cli(
+        capsys, "evaluate", sidecar, "--gt-topic", POSES, *SAMPLE_GT, "--json",
+        "--source", LOG.with_name("drive_loops.rosbag2"), "--no-source-check",
+    )  # fmt: skip
+    assert code == 0 and json.loads(stdout)["tp"] == PAIRS  # the same drive in another file
+
+
+def test_diff_of_sidecars_checks_their_source_as_evaluate_does(sidecar, capsys) -> None:
+    truth = ["--gt-topic", POSES, *SAMPLE_GT]
+    code, out, _ = run_cli(capsys, "diff", sidecar, sidecar, *truth, "--source", LOG)
+    assert code == 0 and "common" in out
+    wrong = SAMPLES / "drive_parked.ros2.mcap"
+    code, _, err = run_cli(capsys, "diff", sidecar, sidecar, *truth, "--source", wrong)
+    assert code == ExitCode.USAGE and "--source" in err and "not the log" in err
 
 
 # -- usage errors and exit codes ----------------------------------------------------------

@@ -271,13 +271,24 @@ def test_g2o_stride_keeps_every_kth_frame_and_the_loop_frames(
     assert _information(spans[longest])[0, 0] == pytest.approx(20 / longest)
 
 
-def test_poses_from_another_log_give_the_same_graph(
-    annotated: Path, capsys: pytest.CaptureFixture[str]
+def test_poses_from_another_log_are_refused_unless_asked_for(
+    annotated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    # The same drive in another container: other bytes, so not the log that was annotated.
     args = [str(annotated), "--format", "g2o", "--odometry-topic", "/odom"]
+    other = ["--poses-from", str(SAMPLES / "drive_loops.rosbag2")]
     _, own, _ = export(capsys, *args)
-    code, other, _ = export(capsys, *args, "--poses-from", str(SAMPLES / "drive_loops.rosbag2"))
-    assert code == 0 and other == own
+    code, out, err = export(capsys, *args, *other)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+    assert "not the log" in err and "--no-source-check" in err
+    code, out, _ = export(capsys, *args, *other, "--no-source-check")
+    assert code == 0 and out == own
+    code, out, _ = export(capsys, *args, "--poses-from", str(SAMPLES / BAG.name))
+    assert code == 0 and out == own  # the log that was annotated
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(annotated.read_bytes())
+    code, out, _ = export(capsys, *args, "--poses-from", str(copy))
+    assert code == 0 and out == own  # a full annotated copy of it: its record names the log
 
 
 def test_output_file_is_written_atomically(

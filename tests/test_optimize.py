@@ -411,6 +411,7 @@ def test_a_sidecar_takes_its_poses_from_the_original_log(
         ("not annotated", 3, "not annotated by doseqslam-logs"),
         ("output over the input", 6, "the output would replace the input"),
         ("no pose topic", 2, "no pose topic (nav_msgs/Odometry, "),
+        ("poses from another log", 2, "not the log"),
         ("output a device", 6, "refusing to replace it"),
     ],
 )
@@ -436,6 +437,13 @@ def test_errors_exit_with_their_documented_codes(
         # A sidecar holds our channels only: without --poses-from no pose topic to default to.
         "no pose topic": [str(unverified["sidecar"]), "-o", str(out)],
         "output a device": [str(log), "--odometry-topic", "/odom", "-o", "/dev/null"],
+        "poses from another log": [
+            str(unverified["sidecar"]),
+            "--poses-from",
+            str(SAMPLES / "drive_parked.ros2.mcap"),
+            "-o",
+            str(out),
+        ],
     }[case]
     before = log.read_bytes()
     capsys.readouterr()

@@ -20,8 +20,8 @@ from ..pipeline.annotate import (
     AnnotateOptions,
     AnnotateResult,
     annotate_log,
-    source_sha256,
 )
+from ..sources.digest import source_sha256
 from .manifest import Counts, FileStamp
 
 # (input key, "expected" | "progress" | "stage", number): frames expected or done, or the

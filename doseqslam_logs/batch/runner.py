@@ -15,7 +15,8 @@ from pathlib import Path
 from .. import __version__
 from ..detector import Parameters
 from ..errors import OutputError
-from ..pipeline.annotate import AnnotateOptions, source_sha256
+from ..pipeline.annotate import AnnotateOptions
+from ..sources.digest import source_sha256
 from .discovery import LogInput
 from .engine import EngineSettings, create_engine
 from .job import Job, Outcome, options_hash

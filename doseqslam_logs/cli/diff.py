@@ -19,7 +19,11 @@ from typing import Any
 
 from ..errors import ExitCode, SourceError, UsageError
 from ..evaluation.diff_gate import Gate, GateFigures, parse_gate
-from .evaluate_log import add_pose_truth_options, add_truth_file_options
+from .evaluate_log import (
+    add_pose_truth_options,
+    add_source_check_option,
+    add_truth_file_options,
+)
 
 _TRUTH_FLAGS = {
     "gt_variable": "--gt-variable",
@@ -27,6 +31,7 @@ _TRUTH_FLAGS = {
     "max_heading": "--max-heading",
     "min_travel": "--min-travel",
     "source": "--source",
+    "no_source_check": "--no-source-check",
 }
 
 
@@ -86,6 +91,7 @@ def _add_truth_options(parser: argparse.ArgumentParser) -> None:
         metavar="LOG",
         help="the log A and B were annotated from, when they are sidecars",
     )
+    add_source_check_option(group)
 
 
 def tolerance_ns(milliseconds: float) -> int:
@@ -103,7 +109,9 @@ def truth_options(args: argparse.Namespace, folders: bool) -> Any:
     if args.tolerance < 0:
         raise UsageError(f"--tolerance must be >= 0, got {args.tolerance}")
     if args.gt is None and args.gt_topic is None:
-        given = [flag for name, flag in _TRUTH_FLAGS.items() if getattr(args, name) is not None]
+        given = [
+            flag for name, flag in _TRUTH_FLAGS.items() if getattr(args, name) not in (None, False)
+        ]
         if given:
             raise UsageError(f"{', '.join(given)}: only with --gt or --gt-topic")
         return None
@@ -120,6 +128,7 @@ def truth_options(args: argparse.Namespace, folders: bool) -> Any:
         min_travel=args.min_travel,
         tolerance=args.tolerance,
         source=args.source,
+        source_check=not args.no_source_check,
     )
     check_options(options)
     return TruthOptions(options, options, args.tolerance)

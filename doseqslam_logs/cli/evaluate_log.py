@@ -22,6 +22,7 @@ _LOG_OPTIONS = {
     "min_travel": "--min-travel",
     "poses_topic": "--poses-topic",
     "source": "--source",
+    "no_source_check": "--no-source-check",
     "plot": "--plot",
 }
 _PARAMETER_OPTIONS = {"config": "--config", "method": "--method", "overrides": "--set"}
@@ -45,12 +46,23 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
         help="the log that was annotated, to read images and poses from when OUT.mcap is a "
         "sidecar (its sha256 must match the one recorded)",
     )
+    add_source_check_option(group)
     group.add_argument(
         "--plot",
         type=Path,
         metavar="DIR",
         help="write pr_curve.png, difference_matrix.png and, with a pose topic, "
         "trajectory.png into DIR (needs matplotlib: pip install 'doseqslam-logs[plot]')",
+    )
+
+
+def add_source_check_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--no-source-check: take a given source log although it is not the annotated one."""
+    parser.add_argument(
+        "--no-source-check",
+        action="store_true",
+        help="use the given log even when its sha256 is not the one recorded at annotation "
+        "(e.g. a log rewritten since; its times and topics must still be the annotated log's)",
     )
 
 
@@ -107,7 +119,7 @@ def add_pose_truth_options(group: argparse._ArgumentGroup) -> None:
 
 def log_only_options(args: argparse.Namespace) -> list[str]:
     """The annotated-log options given on the command line."""
-    return [flag for name, flag in _LOG_OPTIONS.items() if getattr(args, name) is not None]
+    return [flag for name, flag in _LOG_OPTIONS.items() if getattr(args, name) not in (None, False)]
 
 
 def _check_log_args(args: argparse.Namespace) -> None:
@@ -136,5 +148,7 @@ def run_log(args: argparse.Namespace) -> int:
 def _options(args: argparse.Namespace) -> LogEvaluationOptions:
     from ..evaluation.log_run import LogEvaluationOptions
 
-    names = [f.name for f in dataclasses.fields(LogEvaluationOptions)]
-    return LogEvaluationOptions(**{name: getattr(args, name) for name in names})
+    names = [f.name for f in dataclasses.fields(LogEvaluationOptions) if f.name != "source_check"]
+    return LogEvaluationOptions(
+        **{name: getattr(args, name) for name in names}, source_check=not args.no_source_check
+    )

@@ -20,6 +20,7 @@ from ..export.base import (
     LOOP_MODELS,
 )
 from .annotate import positive_int
+from .evaluate_log import add_source_check_option
 
 
 def positive_float(text: str) -> float:
@@ -73,8 +74,9 @@ def add_pose_graph_options(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="LOG",
         help="tum/g2o: read the pose topic from this log (default: OUT.mcap itself; needed for "
-        "a --sidecar output)",
+        "a --sidecar output); it must be the log that was annotated (its sha256 is checked)",
     )
+    add_source_check_option(parser)
     parser.add_argument(
         "--stride",
         type=positive_int,
@@ -119,6 +121,7 @@ def pose_graph_options(args: argparse.Namespace, include_rejected: bool = False)
         include_rejected=include_rejected,
         odometry_topic=args.odometry_topic,
         poses_log=args.poses_from,
+        poses_log_check=not args.no_source_check,
         stride=args.stride,
         loop_translation_sigma_m=args.loop_translation_sigma,
         loop_rotation_sigma_deg=args.loop_rotation_sigma,

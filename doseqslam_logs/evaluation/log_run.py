@@ -19,8 +19,8 @@ import numpy as np
 
 from .. import __version__
 from ..annotations.reader import AnnotatedLog, read_annotations
+from ..annotations.source_check import check_source_log
 from ..errors import UsageError
-from ..pipeline.annotate import source_sha256
 from ..sinks.atomic import check_output_path
 from ..sources import open_source
 from ..sources.poses import PoseTrack, read_poses
@@ -47,6 +47,7 @@ class LogEvaluationOptions:
     min_travel: float | None = None
     tolerance: int = 0
     source: Path | None = None  # the annotated log's source (for a sidecar)
+    source_check: bool = True  # refuse a `source` that is not the annotated log's
     plot: Path | None = None  # folder for the pictures (needs matplotlib)
     poses_topic: str | None = None  # the trajectory picture's topic (default gt_topic)
 
@@ -141,12 +142,8 @@ def _plots_module() -> ModuleType:
 def _content_log(options: LogEvaluationOptions, log: AnnotatedLog) -> Path:
     """The log that holds the images and poses: --source, else OUT.mcap when it is a full copy."""
     if options.source is not None:
-        recorded = log.metadata.source_sha256
-        if recorded and source_sha256(options.source) != recorded:
-            raise UsageError(
-                f"{options.source}: not the log {log.path} was annotated from "
-                f"({log.metadata.source_file}, sha256 differs)"
-            )
+        if options.source_check:
+            check_source_log(log, Path(options.source), "--source")
         return Path(options.source)
     topic = log.metadata.image_topic
     with open_source(log.path) as source:

@@ -33,6 +33,7 @@ class ExportOptions:
     include_rejected: bool = False  # csv/jsonl: also the pairs verification rejected or skipped
     odometry_topic: str | None = None  # tum/g2o: the pose topic placed at camera times
     poses_log: Path | None = None  # where that topic lives (default: the annotated log itself)
+    poses_log_check: bool = True  # refuse a poses_log that is not the annotated log's source
     stride: int = 1  # tum/g2o: keep every stride-th frame (plus loop-closure frames)
     loop_translation_sigma_m: float = DEFAULT_LOOP_TRANSLATION_SIGMA_M
     loop_rotation_sigma_deg: float = DEFAULT_LOOP_ROTATION_SIGMA_DEG

@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from ..annotations.reader import AnnotatedLog
 from ..annotations.records import DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY, LoopClosureRecord
+from ..annotations.source_check import check_source_log
 from ..errors import SourceError, UsageError
 from ..sources import open_source
 from ..sources.poses import POSE_TYPES, PoseTrack, default_pose_topic, read_poses
@@ -147,6 +148,8 @@ def build_pose_graph(log: AnnotatedLog, options: ExportOptions) -> PoseGraph:
     """
     if options.odometry_topic is None:
         raise ValueError("build_pose_graph needs options.odometry_topic")
+    if options.poses_log is not None and options.poses_log_check:
+        check_source_log(log, options.poses_log, "--poses-from")
     times = frame_times_ns(log)
     odometry = read_poses(options.poses_log or log.path, options.odometry_topic)
     inside = (times >= odometry.times_ns[0]) & (times <= odometry.times_ns[-1])

@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import errno
 import functools
-import hashlib
 import json
 import os
 import threading
@@ -44,6 +42,7 @@ from ..sinks.visualization import Visualization, read_trajectory, visual_loops
 from ..sources import Log, is_mcap_file, open_source, pick_image_topic
 from ..sources.base import Promise, Source
 from ..sources.camera_info import find_camera_info
+from ..sources.digest import source_sha256
 from ..sources.frame import Frame
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.images import decode_gray
@@ -78,8 +77,6 @@ from .metric_edges import (
 )
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
-
-HASH_BLOCK = 1 << 20
 
 # The stages of a run, as `annotate_log(stage=...)` announces them when each begins.
 STAGES = ("replay", "verify", "metric", "write")
@@ -293,22 +290,6 @@ def _hash_in_background(path: Path) -> Future[str]:
 
     threading.Thread(target=run, name="sha256", daemon=True).start()
     return future
-
-
-def source_sha256(path: Path) -> str:
-    """sha256 of a log file; of a rosbag2 folder, of its files' names and bytes in name order."""
-    if not (path.is_file() or path.is_dir()) and path.exists():
-        # A pipe or device: reading it would block or consume it; the run's reader refuses it.
-        raise OSError(errno.ESPIPE, "not a regular file", str(path))
-    digest = hashlib.sha256()
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    for file in files:
-        if path.is_dir():
-            digest.update(file.relative_to(path).as_posix().encode() + b"\0")
-        with file.open("rb") as stream:
-            while block := stream.read(HASH_BLOCK):
-                digest.update(block)
-    return digest.hexdigest()
 
 
 class _TimesRecorder:
