@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from doseqslam_logs.errors import SourceError
+from doseqslam_logs.sources import open_source
 from doseqslam_logs.sources.poses import PoseTrack, read_poses, slerp
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
@@ -180,10 +182,53 @@ def test_a_topic_without_messages_is_refused(tmp_path: Path) -> None:
         read_poses(path, "/pose")
 
 
-def test_zero_quaternions_are_refused(tmp_path: Path) -> None:
-    path = _write_pose_log(tmp_path / "zero.mcap", [(5, _pose_stamped(5, 0.0, (0, 0, 0, 0)))])
-    with pytest.raises(SourceError, match="1 poses with a zero quaternion"):
-        read_poses(path, "/pose")
+UNIT = (0.0, 0.0, 0.0, 1.0)
+
+
+@pytest.mark.parametrize(
+    ("x", "quaternion", "reason"),
+    [
+        (math.nan, UNIT, "position not finite"),
+        (math.inf, UNIT, "position not finite"),
+        (0.5, (0.0, math.nan, 0.0, 1.0), "orientation not finite"),
+        (0.5, (0.0, 0.0, 0.0, 0.0), "zero quaternion"),
+    ],
+)
+def test_one_unusable_pose_is_skipped_and_counted_not_the_topic(
+    tmp_path: Path, x: float, quaternion: tuple[float, float, float, float], reason: str
+) -> None:
+    # One bad sample among good ones used to drop the whole topic (issue #40, item 1).
+    messages = [(t, _pose_stamped(t, float(t), UNIT)) for t in (1_000, 2_000, 4_000)]
+    messages.insert(2, (3_000, _pose_stamped(3_000, x, quaternion)))
+    track = read_poses(_write_pose_log(tmp_path / "poses.mcap", messages), "/pose")
+    assert track.times_ns.tolist() == [1_000, 2_000, 4_000]
+    assert dict(track.skipped) == {reason: 1}
+    assert track.skipped_summary() == f"1 message skipped (1 {reason})"
+    only_bad = _write_pose_log(tmp_path / "bad.mcap", [(5, _pose_stamped(5, x, quaternion))])
+    with pytest.raises(
+        SourceError, match=rf"holds no usable pose \(1 message skipped \(1 {reason}"
+    ):
+        read_poses(only_bad, "/pose")
+
+
+def test_an_undecodable_pose_message_is_skipped_and_counted(tmp_path: Path) -> None:
+    path = tmp_path / "cut.mcap"
+    with path.open("wb") as stream:
+        writer = McapWriter(stream)
+        writer.start()
+        schema = writer.register_schema(
+            "geometry_msgs/msg/PoseStamped", "ros2msg", _pose_stamped_schema_text().encode()
+        )
+        channel = writer.register_channel("/pose", "cdr", schema)
+        good = _write_pose_log(tmp_path / "one.mcap", [(1, _pose_stamped(1, 1.0, UNIT))])
+        with open_source(good) as source:
+            [(_, data)] = list(source.raw_messages("/pose"))
+        for t, payload in [(1_000, data), (2_000, data[:20]), (3_000, data)]:
+            writer.add_message(channel, log_time=t, data=payload, publish_time=t)
+        writer.finish()
+    track = read_poses(path, "/pose")
+    # The two good messages carry the same stamp: the second is counted as a repeat.
+    assert dict(track.skipped) == {"undecodable": 1, "stamp repeated": 1}
 
 
 def test_unset_stamps_fall_back_to_log_time_and_repeated_times_keep_the_first(
@@ -326,7 +371,7 @@ def test_decreasing_times_are_refused() -> None:
 def test_poses_are_kept_as_arrays_and_a_short_covariance_is_one_clear_error() -> None:
     """Poses go into flat arrays as they are read (a Python object per message took 2.6 kB:
     docs/performance.md); a covariance that is not 36 values would shift every later
-    message's, so it stops the read with one line."""
+    message's, so its message is skipped before anything of it is kept."""
     from doseqslam_logs.sources import poses
 
     columns = poses._Columns(Path("x.mcap"), "/odom", with_covariance=False)
@@ -339,7 +384,8 @@ def test_poses_are_kept_as_arrays_and_a_short_covariance_is_one_clear_error() ->
     assert track.covariances is None
     with_covariance = poses._Columns(Path("x.mcap"), "/odom", with_covariance=True)
     with_covariance.add(poses._Pose(1, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 36))
-    with pytest.raises(
-        SourceError, match=r"x\.mcap: topic '/odom' has a covariance of 35 values, not 36"
-    ):
-        with_covariance.add(poses._Pose(2, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 35))
+    assert not with_covariance.add(poses._Pose(2, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 35))
+    assert with_covariance.add(poses._Pose(3, [0.0] * 3, [0.0] * 3 + [1.0], [0.5] * 36))
+    track = poses._track(with_covariance)  # the short one skipped: no covariance shifted
+    assert track.times_ns.tolist() == [1, 3] and (track.covariances == 0.5).all()
+    assert dict(track.skipped) == {"covariance of 35 values": 1}

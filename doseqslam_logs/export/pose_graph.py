@@ -30,7 +30,8 @@ quaternion's vector part, about half the angle; there rotations weigh 4 times le
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -43,7 +44,13 @@ from ..annotations.records import DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY, LoopCl
 from ..annotations.source_check import check_source_log
 from ..errors import SourceError, UsageError
 from ..sources import open_source
-from ..sources.poses import POSE_TYPES, PoseTrack, default_pose_topic, read_poses
+from ..sources.poses import (
+    POSE_TYPES,
+    PoseTrack,
+    default_pose_topic,
+    describe_skipped,
+    read_poses,
+)
 from ..verification.metric_pose import OPTICAL_TO_BODY as OPTICAL_TO_BODY
 from ..verification.metric_pose import MetricPose
 from .base import ExportOptions
@@ -90,6 +97,7 @@ class PoseGraph:
     frames_outside_odometry: int  # frames before the first or after the last odometry pose
     loop_closures_left_out: int  # loop closures with a frame outside the odometry
     default_information_edges: int  # odometry edges without a usable covariance
+    odometry_skipped: Mapping[str, int] = field(default_factory=dict)  # unusable pose messages
 
     @property
     def loop_models(self) -> dict[str, int]:
@@ -107,6 +115,8 @@ class PoseGraph:
             f"{len(self.loop_edges)} loop edges{f' ({models})' if models else ''}"
         )
         notes = []
+        if skipped := describe_skipped(self.odometry_skipped):
+            notes.append(f"odometry: {skipped}")
         if self.frames_outside_odometry:
             notes.append(f"{self.frames_outside_odometry} frames outside the odometry left out")
         if self.loop_closures_left_out:
@@ -176,6 +186,7 @@ def build_pose_graph(log: AnnotatedLog, options: ExportOptions) -> PoseGraph:
         frames_outside_odometry=int(np.count_nonzero(~inside)),
         loop_closures_left_out=len(loops) - len(loop_edges),
         default_information_edges=defaults,
+        odometry_skipped=dict(odometry.skipped),
     )
 
 

@@ -57,7 +57,7 @@ from ..sources import Log, opened
 from ..sources.base import Source
 from ..sources.depth import DepthFrames, find_depth_topic, stream_depth
 from ..sources.image_header import DEFAULT_MAX_PIXELS
-from ..sources.poses import PoseTrack, default_pose_topic, read_poses
+from ..sources.poses import PoseTrack, default_pose_topic, describe_skipped, read_poses
 from ..verification.geometry import FrameFeatures, Intrinsics, Verdict, extract_features
 from ..verification.metric_pose import (
     OPTICAL_TO_BODY,
@@ -110,6 +110,7 @@ class MetricStats:
     methods: Counter[str] = field(default_factory=Counter)  # "" for none
     depth_topic: str = ""
     odometry_topic: str = ""
+    odometry_skipped: dict[str, int] = field(default_factory=dict)  # by reason (read_poses)
     depth_messages: int = 0
     depth_skipped: dict[str, int] = field(default_factory=dict)
     frames_loaded: int = 0
@@ -119,7 +120,9 @@ class MetricStats:
         """e.g. '50 pairs: 46 odometry_pnp, 4 rotation_only (odometry /odom)'."""
         counts = ", ".join(f"{n} {m or 'none'}" for m, n in sorted(self.methods.items()))
         sources = [f"depth {self.depth_topic}"] if self.depth_topic else []
-        sources += [f"odometry {self.odometry_topic}"] if self.odometry_topic else []
+        if self.odometry_topic:
+            skipped = describe_skipped(self.odometry_skipped)
+            sources.append(f"odometry {self.odometry_topic}{f', {skipped}' if skipped else ''}")
         where = f" ({', '.join(sources)})" if sources else ""
         return f"{self.pairs} pairs: {counts or 'none'}{where}"
 
@@ -368,6 +371,8 @@ def metric_edges(
         if odometry == "read":
             odometry = read_odometry(source, frame_times, time_source, odometry_topic)
         stats.odometry_topic = "" if odometry is None else odometry.topic
+        if odometry is not None and odometry.track is not None:
+            stats.odometry_skipped = dict(odometry.track.skipped)
         params = dataclasses.replace(verification, feature_detector=METRIC_FEATURES)
         with LogFrameReader(source, image_topic, frame_times, max_pixels=max_pixels) as reader:
             fitter = _Fitter(_Features(reader, params), intrinsics, odometry)

@@ -73,7 +73,10 @@ class DecodedMessage:
 
     log_time_ns: int
     message_type: str
-    message: Any
+    message: Any  # None when it could not be deserialized (decode_error says why)
+    # As ImageMessage's: one corrupt message is yielded, not raised, so that a reader can skip
+    # and count it and go on with the rest of the topic.
+    decode_error: str | None = None
 
 
 class Source(Protocol):

@@ -76,6 +76,9 @@ def find_camera_info(log: Log, image_topic: str) -> CameraInfoSearch:
             return CameraInfoSearch()
         search = CameraInfoSearch(topic)
         for item in islice(source.messages(topic), MAX_CAMERA_INFOS):
+            if item.decode_error is not None:
+                search.unusable["undecodable"] += 1
+                continue
             info = _camera_info(topic, item.message)
             if isinstance(info, CameraInfo):
                 search.info = info

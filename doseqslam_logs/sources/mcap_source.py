@@ -568,7 +568,13 @@ class McapSource:
             for schema, channel, message in self._lent_records(topic, None, None):
                 if schema is None:
                     raise SourceError(f"{self.path}: topic {topic!r} has no schema")
-                decoded = self._deserializer(schema, channel)(message.data)
+                deserialize = self._deserializer(schema, channel)  # a bad schema: the topic's
+                try:
+                    decoded = deserialize(message.data)
+                except Exception as exc:  # any deserializer, any damage: this message only
+                    problem = describe_read_error(exc)
+                    yield DecodedMessage(message.log_time, schema.name, None, problem)
+                    continue
                 yield DecodedMessage(message.log_time, schema.name, decoded)
 
     @contextlib.contextmanager

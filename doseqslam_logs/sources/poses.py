@@ -9,12 +9,19 @@ Each pose is timed by its header stamp (Foxglove: its `timestamp`); a stamp of 0
 back to the message's log time, as the detector's clock does. Poses are sorted by that time and
 a pose whose time repeats an earlier one is dropped (keeping the first), so times are strictly
 ascending and interpolation is well defined.
+
+A message that cannot be a pose (undecodable, a position or orientation not finite, a zero
+quaternion, a covariance that is not 6 x 6) is skipped and counted by reason in
+`PoseTrack.skipped`, like an unusable image: one bad sample never costs the topic.
 """
 
 from __future__ import annotations
 
+import math
 from array import array
-from dataclasses import dataclass
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +57,12 @@ class PoseTrack:
     quaternions_xyzw: F64  # (N, 4), unit
     covariances: F64 | None  # (N, 6, 6) in ROS order (x, y, z, rot x, rot y, rot z), or None
     frame_id: str = ""  # the first message's frame (header.frame_id), "" without one
+    # Messages of the topic that gave no pose, by reason (`skipped_summary`).
+    skipped: Mapping[str, int] = field(default_factory=dict)
+
+    def skipped_summary(self) -> str:
+        """e.g. '2 messages skipped (1 position not finite, 1 zero quaternion)', '' for none."""
+        return describe_skipped(self.skipped)
 
     def __len__(self) -> int:
         return int(self.times_ns.shape[0])
@@ -120,6 +133,14 @@ class _Pose:
     covariance: list[float] | None
 
 
+def describe_skipped(skipped: Mapping[str, int]) -> str:
+    total = sum(skipped.values())
+    if not total:
+        return ""
+    reasons = ", ".join(f"{n} {reason}" for reason, n in sorted(skipped.items()))
+    return f"{total} message{'s' if total > 1 else ''} skipped ({reasons})"
+
+
 def canonical_type(name: str) -> str:
     """ROS 2 names to ROS 1 ones: nav_msgs/msg/Odometry -> nav_msgs/Odometry."""
     return name.replace("/msg/", "/")
@@ -145,8 +166,8 @@ def read_poses(log: Log, topic: str) -> PoseTrack:
     rosbag2 folder or .db3), with the first message's frame id.
 
     Raises SourceError (one line naming the file and the topic) when the log cannot be read,
-    the topic is missing, its message type is not a supported pose type, it holds no messages,
-    or a pose is not finite or has a zero quaternion.
+    the topic is missing, its message type is not a supported pose type, or it holds no
+    usable pose. Unusable messages are skipped and counted (`PoseTrack.skipped`).
     """
     with opened(log) as source:
         path = source.path
@@ -154,10 +175,22 @@ def read_poses(log: Log, topic: str) -> PoseTrack:
         kind = _check_type(path, topic, [n for t in types for n in t.split(", ")])
         columns = _Columns(path, topic, with_covariance=kind in _WITH_COVARIANCE)
         for m in source.messages(topic):
-            if not columns.times:
+            if m.decode_error is not None:
+                columns.skipped["undecodable"] += 1
+                continue
+            try:
+                pose = _pose(kind, m.message, m.log_time_ns)
+            except (TypeError, ValueError, AttributeError, OverflowError):
+                columns.skipped["fields missing or not numbers"] += 1
+                continue
+            if columns.add(pose) and len(columns.times) == 1:
                 columns.frame_id = frame_id_of(m.message)
-            columns.add(_pose(kind, m.message, m.log_time_ns))
     if not columns.times:
+        if columns.skipped:
+            raise SourceError(
+                f"{path}: topic {topic!r} holds no usable pose "
+                f"({describe_skipped(columns.skipped)})"
+            )
         raise SourceError(f"{path}: topic {topic!r} holds no messages")
     return _track(columns)
 
@@ -241,21 +274,39 @@ class _Columns:
         self.covariances = array("d")  # 36 per message, when the type has a covariance
         self.with_covariance = with_covariance
         self.frame_id = ""
+        self.skipped: Counter[str] = Counter()
 
-    def add(self, pose: _Pose) -> None:
-        if pose.covariance is not None and len(pose.covariance) != 36:
-            raise SourceError(
-                f"{self.path}: topic {self.topic!r} has a covariance of "
-                f"{len(pose.covariance)} values, not 36"
-            )
+    def add(self, pose: _Pose) -> bool:
+        """Keep `pose`, or count why it cannot be one; whether it was kept."""
+        reason = _unusable(pose)
+        if reason:
+            self.skipped[reason] += 1
+            return False
         self.times.append(pose.time_ns)
         self.poses.extend(pose.position + pose.quaternion)
         if pose.covariance is not None:  # every message of the topic's type has one
             self.covariances.extend(pose.covariance)
+        return True
+
+
+def _unusable(pose: _Pose) -> str:
+    """Why a message cannot be a pose, "" when it can. A covariance that is not finite keeps
+    its pose: the exports then give that edge the default information and say so."""
+    if pose.covariance is not None and len(pose.covariance) != 36:
+        return f"covariance of {len(pose.covariance)} values"
+    if not all(math.isfinite(v) for v in pose.position):
+        return "position not finite"
+    if not all(math.isfinite(v) for v in pose.quaternion):
+        return "orientation not finite"
+    if math.fsum(v * v for v in pose.quaternion) < 1e-18:
+        return "zero quaternion"
+    if not -(2**63) <= pose.time_ns < 2**63:
+        return "stamp out of range"
+    return ""
 
 
 def _track(columns: _Columns) -> PoseTrack:
-    path, topic = columns.path, columns.topic
+    topic = columns.topic
     # Stable: the first of equal times comes first.
     unsorted = np.frombuffer(columns.times, dtype=np.int64)
     order = np.argsort(unsorted, kind="stable")
@@ -263,15 +314,13 @@ def _track(columns: _Columns) -> PoseTrack:
     keep = np.concatenate([[True], np.diff(times) > 0])
     values = np.frombuffer(columns.poses, dtype=np.float64).reshape(-1, 7)[order][keep]
     positions, quaternions = values[:, :3].copy(), values[:, 3:].copy()
-    norms = np.linalg.norm(quaternions, axis=1)
-    if not (np.isfinite(positions).all() and np.isfinite(norms).all()):
-        raise SourceError(f"{path}: topic {topic!r} holds poses that are not finite")
-    if (norms < 1e-9).any():
-        count = int(np.count_nonzero(norms < 1e-9))
-        raise SourceError(f"{path}: topic {topic!r} has {count} poses with a zero quaternion")
+    norms = np.linalg.norm(quaternions, axis=1)  # finite and > 0: `_unusable`
+    skipped = Counter(columns.skipped)
+    if repeated := int(np.count_nonzero(~keep)):
+        skipped["stamp repeated"] = repeated
     covariances = None
     if columns.with_covariance:
         matrices = np.frombuffer(columns.covariances, dtype=np.float64).reshape(-1, 6, 6)
         covariances = matrices[order][keep]
     unit = quaternions / norms[:, None]
-    return PoseTrack(topic, times[keep], positions, unit, covariances, columns.frame_id)
+    return PoseTrack(topic, times[keep], positions, unit, covariances, columns.frame_id, skipped)

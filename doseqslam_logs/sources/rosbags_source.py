@@ -247,7 +247,12 @@ class RosbagsSource:
             return
         with self._reading(topic):
             for connection, log_time, payload in self._messages(connections, None, None):
-                decoded = self._reader.deserialize(payload, connection.msgtype)
+                try:
+                    decoded = self._reader.deserialize(payload, connection.msgtype)
+                except Exception as exc:  # this message only: the bag itself reads on
+                    problem = f"{type(exc).__name__}: {exc}"
+                    yield DecodedMessage(log_time, connection.msgtype, None, problem)
+                    continue
                 yield DecodedMessage(log_time, connection.msgtype, decoded)
 
     def _messages(

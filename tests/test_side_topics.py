@@ -1,0 +1,101 @@
+"""Issue #40, item 1: a side topic's unusable message is skipped and counted by reason, never
+the whole topic for one message. Here /odom of drive_loops with single bad samples: the
+pose track keeps the rest, the run's metric poses still come from the odometry and the
+summaries say how many messages were skipped and why."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import struct
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+from mcap_ros2.decoder import DecoderFactory
+
+from doseqslam_logs.cli.main import main
+from doseqslam_logs.sources.poses import read_poses
+
+REPO = Path(__file__).resolve().parents[1]
+LOOPS = REPO / "sample_logs" / "drive_loops.ros2.mcap"
+ODOM = "/odom"
+
+
+def _damaged(data: bytes, decoded: object, damage: str) -> bytes:
+    pose = decoded.pose.pose  # type: ignore[attr-defined]
+    if damage == "undecodable":
+        return data[:24]
+    if damage == "nan position":
+        p = pose.position
+        old, new = struct.pack("<3d", p.x, p.y, p.z), struct.pack("<3d", math.nan, p.y, p.z)
+    else:  # "zero quaternion"
+        q = pose.orientation
+        old, new = struct.pack("<4d", q.x, q.y, q.z, q.w), struct.pack("<4d", 0, 0, 0, 0)
+    at = data.find(old)
+    assert at > 0
+    return data[:at] + new + data[at + len(old) :]
+
+
+def copy_with_bad_odometry(out: Path, damage_of: dict[int, str]) -> Path:
+    """drive_loops with the i-th /odom message damaged as damage_of[i] says."""
+    decoder = DecoderFactory()
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    index = 0
+    with LOOPS.open("rb") as stream, out.open("wb") as sink:
+        writer = Writer(sink, compression=CompressionType.ZSTD)
+        writer.start(profile="ros2")
+        for schema, channel, message in make_reader(stream).iter_messages():
+            assert schema is not None
+            data = message.data
+            if channel.topic == ODOM:
+                if index in damage_of:
+                    decode = decoder.decoder_for(channel.message_encoding, schema)
+                    assert decode is not None
+                    data = _damaged(data, decode(data), damage_of[index])
+                index += 1
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id]
+                )
+            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        writer.finish()
+    return out
+
+
+def test_each_bad_odometry_message_is_skipped_and_counted(tmp_path: Path) -> None:
+    damage = {10: "nan position", 50: "zero quaternion", 90: "undecodable"}
+    log = copy_with_bad_odometry(tmp_path / "bad_odom.mcap", damage)
+    track = read_poses(log, ODOM)
+    assert len(track) == len(read_poses(LOOPS, ODOM)) - 3
+    assert dict(track.skipped) == {
+        "position not finite": 1,
+        "zero quaternion": 1,
+        "undecodable": 1,
+    }
+
+
+@pytest.mark.slow
+def test_one_nan_odometry_sample_costs_no_metric_pose_and_is_reported(tmp_path: Path) -> None:
+    """Before: one NaN position in 240 messages dropped /odom silently, and all pairs fell
+    back to rotation only, each with the false reason "no odometry topic"."""
+    log = copy_with_bad_odometry(tmp_path / "nan_odom.mcap", {100: "nan position"})
+    out = tmp_path / "out.mcap"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["annotate", str(log), "-o", str(out)]) == 0
+    summary = printed.getvalue()
+    assert "(odometry /odom, 1 message skipped (1 position not finite))" in summary
+    fitted = int(summary.split(" odometry_pnp")[0].rsplit(" ", 1)[-1])
+    assert fitted >= 40  # the sample gives 59 with every sample usable
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+        assert main(["export", str(out), "--format", "g2o", "-o", str(tmp_path / "g.g2o")]) == 0
+    assert "odometry: 1 message skipped (1 position not finite)" in printed.getvalue()
