@@ -16,7 +16,9 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from mcap_ros2.decoder import DecoderFactory
 
+from doseqslam_logs.annotations.records import FrameTimes
 from doseqslam_logs.cli.main import main
+from doseqslam_logs.pipeline.metric_edges import read_odometry
 from doseqslam_logs.sources.poses import read_poses
 
 REPO = Path(__file__).resolve().parents[1]
@@ -28,12 +30,13 @@ def _damaged(data: bytes, decoded: object, damage: str) -> bytes:
     pose = decoded.pose.pose  # type: ignore[attr-defined]
     if damage == "undecodable":
         return data[:24]
+    p, q = pose.position, pose.orientation
+    # The whole pose (7 doubles) locates it: a zero position alone may match padding.
+    old = struct.pack("<7d", p.x, p.y, p.z, q.x, q.y, q.z, q.w)
     if damage == "nan position":
-        p = pose.position
-        old, new = struct.pack("<3d", p.x, p.y, p.z), struct.pack("<3d", math.nan, p.y, p.z)
+        new = struct.pack("<7d", math.nan, p.y, p.z, q.x, q.y, q.z, q.w)
     else:  # "zero quaternion"
-        q = pose.orientation
-        old, new = struct.pack("<4d", q.x, q.y, q.z, q.w), struct.pack("<4d", 0, 0, 0, 0)
+        new = struct.pack("<7d", p.x, p.y, p.z, 0, 0, 0, 0)
     at = data.find(old)
     assert at > 0
     return data[:at] + new + data[at + len(old) :]
@@ -99,3 +102,20 @@ def test_one_nan_odometry_sample_costs_no_metric_pose_and_is_reported(tmp_path: 
     with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
         assert main(["export", str(out), "--format", "g2o", "-o", str(tmp_path / "g.g2o")]) == 0
     assert "odometry: 1 message skipped (1 position not finite)" in printed.getvalue()
+
+
+def test_a_default_pose_topic_with_no_usable_message_is_named_as_the_reason(
+    tmp_path: Path,
+) -> None:
+    """Every /odom sample bad: the metric stage goes on without odometry, and says that /odom
+    was unusable and why, not that the log has no odometry topic."""
+    log = copy_with_bad_odometry(
+        tmp_path / "all_bad.mcap", dict.fromkeys(range(240), "nan position")
+    )
+    frame_times = FrameTimes.from_pairs([(t, t) for t in range(1, 241)])
+    odometry = read_odometry(log, frame_times, "log", None)
+    assert odometry.frames is None
+    assert odometry.missing_reason == (
+        "odometry_pnp: odometry /odom unusable (topic '/odom' holds no usable pose "
+        "(240 messages skipped (240 position not finite)))"
+    )

@@ -71,6 +71,7 @@ from .frame_spill import spilled_frame_store
 from .metric_edges import (
     NO_INTRINSICS,
     MetricEdges,
+    Odometry,
     OdometryFrames,
     metric_edges,
     read_odometry,
@@ -620,14 +621,21 @@ def _run(
         count_missing(counts, promise, log, topic)
         refuse_no_frame(counts, recovery, log, topic, _window(options))
         frame_times = recorder.frame_times()
-        odometry = None
+        odometry = Odometry(None)
         if options.verification is not None:
             _announce(stage, "verify")
             odometry = read_odometry(
                 source, frame_times, options.time_source, options.odometry_topic
             )
         verification = verify_decisions(
-            source, topic, result, frame_times, options, features, odometry, recorder.first_shape
+            source,
+            topic,
+            result,
+            frame_times,
+            options,
+            features,
+            odometry.frames,
+            recorder.first_shape,
         )
     if verification is not None:
         _announce(stage, "metric")
@@ -665,7 +673,7 @@ def _run(
         None if verification is None or verification.metric is None else verification.metric.poses,
         spool=True,
     )
-    track = None if odometry is None else odometry.track
+    track = None if odometry.frames is None else odometry.frames.track
     try:
         written = _write_output(source, output, annotations, topic, options, stage, track)
     finally:

@@ -111,6 +111,7 @@ class MetricStats:
     depth_topic: str = ""
     odometry_topic: str = ""
     odometry_skipped: dict[str, int] = field(default_factory=dict)  # by reason (read_poses)
+    odometry_problem: str = ""  # the default pose topic could not be used (Odometry.problem)
     depth_messages: int = 0
     depth_skipped: dict[str, int] = field(default_factory=dict)
     frames_loaded: int = 0
@@ -123,6 +124,7 @@ class MetricStats:
         if self.odometry_topic:
             skipped = describe_skipped(self.odometry_skipped)
             sources.append(f"odometry {self.odometry_topic}{f', {skipped}' if skipped else ''}")
+        sources += [self.odometry_problem] if self.odometry_problem else []
         where = f" ({', '.join(sources)})" if sources else ""
         return f"{self.pairs} pairs: {counts or 'none'}{where}"
 
@@ -276,6 +278,8 @@ class _Fitter:
     features: _Features
     intrinsics: Intrinsics
     odometry: OdometryFrames | None
+    # A pair's reason when there is no odometry (Odometry.missing_reason).
+    no_odometry: str = "odometry_pnp: no odometry topic"
     params: MetricPoseParameters = field(default_factory=MetricPoseParameters)
 
     def fit(
@@ -329,7 +333,7 @@ class _Fitter:
 
     def _no_odometry(self) -> str:
         if self.odometry is None:
-            return "odometry_pnp: no odometry topic"
+            return self.no_odometry
         return "odometry_pnp: no odometry at the match"
 
 
@@ -347,7 +351,7 @@ def metric_edges(
     interval_s: float = METRIC_INTERVAL_S,
     progress: Callable[[int], None] | None = None,
     workers: int = 2,
-    odometry: OdometryFrames | Literal["read"] | None = "read",
+    odometry: Odometry | Literal["read"] = "read",
     no_intrinsics: str = NO_INTRINSICS,
 ) -> MetricEdges:
     """The metric pose of every accepted pair (module docstring), fitted on `workers` threads.
@@ -370,12 +374,13 @@ def metric_edges(
     with opened(log) as source:
         if odometry == "read":
             odometry = read_odometry(source, frame_times, time_source, odometry_topic)
-        stats.odometry_topic = "" if odometry is None else odometry.topic
-        if odometry is not None and odometry.track is not None:
-            stats.odometry_skipped = dict(odometry.track.skipped)
+        frames, stats.odometry_problem = odometry.frames, odometry.problem
+        stats.odometry_topic = "" if frames is None else frames.topic
+        if frames is not None and frames.track is not None:
+            stats.odometry_skipped = dict(frames.track.skipped)
         params = dataclasses.replace(verification, feature_detector=METRIC_FEATURES)
         with LogFrameReader(source, image_topic, frame_times, max_pixels=max_pixels) as reader:
-            fitter = _Fitter(_Features(reader, params), intrinsics, odometry)
+            fitter = _Fitter(_Features(reader, params), intrinsics, frames, odometry.missing_reason)
             fits = _fit_all(source, image_topic, chosen, fitter, stats)
             for done, (key, pose) in enumerate(_in_threads(fits, workers)):
                 poses[key] = pose
@@ -393,24 +398,43 @@ def _finished(edges: MetricEdges, start: float) -> MetricEdges:
     return edges
 
 
+@dataclass(frozen=True)
+class Odometry:
+    """What a run found for its odometry: the frames' poses, or why there are none."""
+
+    frames: OdometryFrames | None
+    problem: str = ""  # the default pose topic that could not be used, and why
+
+    @property
+    def missing_reason(self) -> str:
+        """A pair's reason for fitting without odometry."""
+        return f"odometry_pnp: {self.problem or 'no odometry topic'}"
+
+
 def read_odometry(
     log: Log, frame_times: FrameTimes, time_source: str, asked: str | None
-) -> OdometryFrames | None:
+) -> Odometry:
     """The odometry at the frames: `asked` (raises SourceError when it cannot be read), else the
-    log's default pose topic (`default_pose_topic`; None when there is none or it cannot be
-    read: the run goes on with the other rungs), "" none. Its PoseTrack is kept (`track`)
-    for the trajectory the visualization draws."""
+    log's default pose topic (`default_pose_topic`; when there is none or it cannot be read,
+    the run goes on with the other rungs and `problem` says why), "" none. Its PoseTrack is
+    kept (`track`) for the trajectory the visualization draws."""
     with opened(log) as source:
         topic = default_pose_topic(source) if asked is None else asked
         if not topic:
-            return None
+            return Odometry(None)
         try:
             track = read_poses(source, topic)
-        except SourceError:
+        except SourceError as exc:
             if asked is not None:
                 raise
-            return None
-    return odometry_frames(track, frame_times.detector_times_ns(time_source))
+            return Odometry(None, f"odometry {topic} unusable ({_after_path(str(exc), source)})")
+    return Odometry(odometry_frames(track, frame_times.detector_times_ns(time_source)))
+
+
+def _after_path(message: str, source: Source) -> str:
+    """A SourceError's text without its leading "PATH: " (the pair is in that log already)."""
+    prefix = f"{source.path}: "
+    return message[len(prefix) :] if message.startswith(prefix) else message
 
 
 _Fit = Callable[[], "MetricPose | str"]
