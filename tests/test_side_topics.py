@@ -1,7 +1,7 @@
 """Issue #40, item 1: a side topic's unusable message is skipped and counted by reason, never
 the whole topic for one message. Here /odom of drive_loops with single bad samples: the
 pose track keeps the rest, the run's metric poses still come from the odometry and the
-summaries say how many messages were skipped and why."""
+summaries (annotate, export, optimize) say how many messages were skipped and why."""
 
 from __future__ import annotations
 
@@ -30,6 +30,11 @@ def _damaged(data: bytes, decoded: object, damage: str) -> bytes:
     pose = decoded.pose.pose  # type: ignore[attr-defined]
     if damage == "undecodable":
         return data[:24]
+    if damage == "nan covariance":  # kept: the exports use the default information
+        covariance = struct.pack("<36d", *decoded.pose.covariance)  # type: ignore[attr-defined]
+        at = data.find(covariance)
+        assert at > 0
+        return data[:at] + struct.pack("<36d", *[math.nan] * 36) + data[at + 288 :]
     p, q = pose.position, pose.orientation
     # The whole pose (7 doubles) locates it: a zero position alone may match padding.
     old = struct.pack("<7d", p.x, p.y, p.z, q.x, q.y, q.z, q.w)
@@ -89,7 +94,8 @@ def test_each_bad_odometry_message_is_skipped_and_counted(tmp_path: Path) -> Non
 def test_one_nan_odometry_sample_costs_no_metric_pose_and_is_reported(tmp_path: Path) -> None:
     """Before: one NaN position in 240 messages dropped /odom silently, and all pairs fell
     back to rotation only, each with the false reason "no odometry topic"."""
-    log = copy_with_bad_odometry(tmp_path / "nan_odom.mcap", {100: "nan position"})
+    damage = {100: "nan position", 150: "nan covariance"}
+    log = copy_with_bad_odometry(tmp_path / "nan_odom.mcap", damage)
     out = tmp_path / "out.mcap"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
@@ -101,7 +107,15 @@ def test_one_nan_odometry_sample_costs_no_metric_pose_and_is_reported(tmp_path: 
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
         assert main(["export", str(out), "--format", "g2o", "-o", str(tmp_path / "g.g2o")]) == 0
-    assert "odometry: 1 message skipped (1 position not finite)" in printed.getvalue()
+    exported = printed.getvalue()
+    assert "odometry: 1 message skipped (1 position not finite)" in exported
+    assert "without a covariance use the default information" in exported
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["optimize", str(out), "-o", str(tmp_path / "opt.mcap")]) == 0
+    optimized = printed.getvalue()  # optimize says what export says
+    assert "odometry: 1 message skipped (1 position not finite)" in optimized
+    assert "without a covariance use the default information" in optimized
 
 
 def test_a_default_pose_topic_with_no_usable_message_is_named_as_the_reason(

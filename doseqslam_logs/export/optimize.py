@@ -42,7 +42,9 @@ class OptimizeResult:
 
     @property
     def summary(self) -> str:
-        return f"{self.output_path}: {self.optimized.summary(self.graph)}"
+        notes = self.graph.notes
+        text = f"{self.output_path}: {self.optimized.summary(self.graph)}"
+        return text + (f" ({'; '.join(notes)})" if notes else "")
 
     def to_json(self) -> dict[str, Any]:
         """The summary line's figures."""
@@ -64,6 +66,8 @@ class OptimizeResult:
             "odometry_calibration": optimized.calibration.to_json(),
             "frames_outside_odometry": self.graph.frames_outside_odometry,
             "loop_closures_left_out": self.graph.loop_closures_left_out,
+            "default_information_edges": self.graph.default_information_edges,
+            "odometry_skipped": dict(self.graph.odometry_skipped),
         }
 
 

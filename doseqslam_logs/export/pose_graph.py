@@ -114,6 +114,12 @@ class PoseGraph:
             f"{len(self.vertex_ids)} vertices, {len(self.odometry_edges)} odometry edges, "
             f"{len(self.loop_edges)} loop edges{f' ({models})' if models else ''}"
         )
+        notes = self.notes
+        return text + (f" ({'; '.join(notes)})" if notes else "")
+
+    @property
+    def notes(self) -> list[str]:
+        """What the graph left out or assumed (the export's and optimize's summaries say it)."""
         notes = []
         if skipped := describe_skipped(self.odometry_skipped):
             notes.append(f"odometry: {skipped}")
@@ -126,7 +132,7 @@ class PoseGraph:
                 f"{self.default_information_edges} odometry edges without a covariance "
                 "use the default information"
             )
-        return text + (f" ({'; '.join(notes)})" if notes else "")
+        return notes
 
 
 def with_pose_topic(options: ExportOptions, log: Path) -> ExportOptions:
