@@ -23,6 +23,7 @@ from .enhance import enhance
 from .events import Alternative, Candidate, SequenceDecision
 from .params import Parameters
 from .place_search import (
+    Descriptors,
     Exclusion,
     PlaceSearch,
     ScoredWindow,
@@ -32,7 +33,13 @@ from .place_search import (
     reference_score,
 )
 from .preprocess import frame_vector
-from .segmentation import SMALL_FRAME_SIDE, Segmenter, feature_count, make_segmenter
+from .segmentation import (
+    SMALL_FRAME_SIDE,
+    DescriptorSegmenter,
+    Segmenter,
+    feature_count,
+    make_segmenter,
+)
 from .timing import StageTimes
 from .trajectory import TrajectoryScores, next_best_starts, normalize, trajectory_scores
 
@@ -165,13 +172,23 @@ class DOSeqSLAM:
         places = self._places.memory_bytes if self._places is not None else 0
         return self._store.nbytes + self._timestamps.itemsize * len(self._timestamps) + places
 
-    def prepare(self, gray: GrayImage) -> PreparedFrame:
-        """The frame vector and segmentation features; thread-safe, needs no other frame."""
+    def prepare(self, gray: GrayImage, descriptors: Descriptors | None = None) -> PreparedFrame:
+        """The frame vector and segmentation features; thread-safe, needs no other frame.
+
+        `descriptors`: the frame's ORB descriptors, strongest first, that the caller already
+        extracted from the image this detector's ORB would see (`feature_image` at
+        feature_image_max_side, enlarged as the parameters say): an ORB segmentation and the
+        place index take the strongest max_features of them instead of extracting their own.
+        Ignored by any other segmentation.
+        """
         p = self.params
         with self.timings.stage("preprocess"):
             vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)
         with self.timings.stage("features"):
-            features = self._segmenter.prepare(gray)
+            if descriptors is not None and isinstance(self._segmenter, DescriptorSegmenter):
+                features = self._segmenter.supplied(descriptors)
+            else:
+                features = self._segmenter.prepare(gray)
             places = None
             if self._places is not None and self._segmenter.name == "orb":  # reuse them
                 places = binary_descriptors(features)

@@ -215,6 +215,13 @@ class DescriptorSegmenter:
             descriptors = descriptors[order[: self._max_features]]
         return _Features(descriptors)
 
+    def supplied(self, descriptors: npt.NDArray[Any]) -> _Features:
+        """`prepare`'s result from descriptors the caller extracted (strongest first): the
+        strongest max_features of them."""
+        if len(descriptors) == 0:
+            return _Features(None)
+        return _Features(descriptors[: self._max_features])
+
     def _surviving(self, current: _Features) -> _Features:
         """The common features that found a match in `current` (their own descriptors, so C is
         the intersection with the sequence's first frame and cannot drift along the route)."""

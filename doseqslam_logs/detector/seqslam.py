@@ -56,8 +56,11 @@ class SeqSLAM:
         rows = sum(r.nbytes for r in self._rows)
         return self._store.nbytes + rows + self._timestamps.itemsize * len(self._timestamps)
 
-    def prepare(self, gray: GrayImage) -> PreparedFrame:
-        """The frame vector (SeqSLAM needs no features); thread-safe."""
+    def prepare(
+        self, gray: GrayImage, descriptors: npt.NDArray[np.uint8] | None = None
+    ) -> PreparedFrame:
+        """The frame vector (SeqSLAM needs no features: `descriptors` are ignored);
+        thread-safe."""
         p = self.params
         with self.timings.stage("preprocess"):
             vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)

@@ -190,7 +190,7 @@ def evaluate_folder(
     if stage is not None:
         stage("replay")
     # verification's features, extracted as the replay decodes the images
-    with feature_spill_for(verification) as features:
+    with feature_spill_for(verification, params) as features:
         frames = folder_frames(images, fps, max_pixels)
         result = replay(frames, make_detector(params), progress, side=features)
         if stage is not None and verification is not None:

@@ -613,7 +613,7 @@ def _run(
     counts = FrameCounts()
     recorder = _TimesRecorder()
     # verification's features, extracted as the replay decodes the frames
-    with feature_spill_for(options.verification) as features:
+    with feature_spill_for(options.verification, params) as features:
         topic, result, promise, unattributed = _replay_log(
             source, log, params, options, callbacks, recovery, counts, recorder, features
         )

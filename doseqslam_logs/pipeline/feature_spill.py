@@ -23,10 +23,12 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from ..closing import Closing
+from ..detector.params import Parameters
 from ..verification.geometry import FrameFeatures, GrayImage, extract_features
-from ..verification.params import VerificationParameters
+from ..verification.params import VerificationParameters, shares_features
 from .frame_spill import FileSpill
 
 # count (uint32), descriptor width (uint32), scale (float64), then the keypoints (float32
@@ -42,8 +44,15 @@ class FeatureSpill(Closing):
     over.
     """
 
-    def __init__(self, params: VerificationParameters, directory: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        params: VerificationParameters,
+        directory: str | Path | None = None,
+        shared: bool = False,
+    ) -> None:
+        """`shared`: the detector takes these features too (`detector_descriptors`)."""
         self.params = params
+        self.shared = shared
         self._spill = FileSpill(directory, what="the frames' features")
         self._offsets = array("q", [0])  # frame i's record: offsets[i] .. offsets[i + 1]
 
@@ -53,6 +62,10 @@ class FeatureSpill(Closing):
 
     def compute(self, gray: GrayImage) -> FrameFeatures:
         return extract_features(gray, self.params)
+
+    def detector_descriptors(self, features: FrameFeatures) -> npt.NDArray[np.uint8] | None:
+        """The descriptors for the detector's segmentation and place index, when shared."""
+        return features.descriptors if self.shared else None
 
     def keep(self, index: int, features: FrameFeatures) -> None:
         """Append frame `index`'s features (the frames must come in order, from 0).
@@ -92,11 +105,14 @@ class FeatureSpill(Closing):
 
 
 @contextmanager
-def feature_spill_for(params: VerificationParameters | None) -> Iterator[FeatureSpill | None]:
+def feature_spill_for(
+    params: VerificationParameters | None, detector: Parameters
+) -> Iterator[FeatureSpill | None]:
     """A FeatureSpill for verification with these parameters, closed (and so gone) when the
-    block ends; None when verification is off."""
+    block ends, its features shared with a `detector` of these parameters where they can be
+    (`shares_features`); None when verification is off."""
     if params is None:
         yield None
         return
-    with FeatureSpill(params) as spill:
+    with FeatureSpill(params, shared=shares_features(detector, params)) as spill:
         yield spill

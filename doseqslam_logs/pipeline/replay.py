@@ -9,7 +9,8 @@ OpenCV releases the GIL, so both cores work. The decisions do not depend on `wor
 A later stage that needs something of every decoded frame (verification's features:
 pipeline.feature_spill) hands the replay a `FrameSideWork`: its `compute` runs beside
 `prepare` on the pool, its `keep` on the calling thread in frame order, so the frames are
-decoded once.
+decoded once; where its features are the detector's too, `prepare` takes them
+(`detector_descriptors`), so they are also extracted once.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar
+
+import numpy as np
+import numpy.typing as npt
 
 from .. import waiting
 from ..detector import Detector, PreparedFrame, SequenceDecision
@@ -77,6 +81,11 @@ class FrameSideWork(Protocol, Generic[T]):
         """On the detector's thread, for frame 0, 1, ... in order."""
         ...
 
+    def detector_descriptors(self, result: T) -> npt.NDArray[np.uint8] | None:
+        """ORB descriptors of `compute`'s result for `detector.prepare` to use instead of
+        extracting its own (one extraction a frame), or None."""
+        ...
+
 
 class _NoSideWork:
     def compute(self, gray: GrayImage) -> None:
@@ -84,6 +93,9 @@ class _NoSideWork:
 
     def keep(self, index: int, result: None) -> None:
         pass
+
+    def detector_descriptors(self, result: None) -> None:
+        return None
 
 
 _Prepared = tuple[PreparedFrame, Any]  # detector.prepare, side.compute
@@ -197,7 +209,8 @@ def prepared_frames(
     work: FrameSideWork[Any] = _NoSideWork() if side is None else side
 
     def prepare(gray: GrayImage) -> _Prepared:
-        return detector.prepare(gray), work.compute(gray)
+        computed = work.compute(gray)
+        return detector.prepare(gray, work.detector_descriptors(computed)), computed
 
     if workers <= 1:
         for frame in frames:

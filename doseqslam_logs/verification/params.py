@@ -87,6 +87,12 @@ class VerificationParameters:
     motion_rule: bool = True
     leave_distance_m: float = 2.0
     leave_samples: int = 6
+    # One feature extraction a frame: where the detector's segmentation is ORB on the same
+    # feature image (`shares_features`: the verified defaults), it and the place index take
+    # the strongest of these features instead of extracting their own. Sharing made a parked
+    # camera's frames one sequence that matched itself before the motion rule; with the rule,
+    # docs/research/2026-12-06-shared-features.md. False: the detector extracts its own.
+    shared_features: bool = True
 
     def __post_init__(self) -> None:
         reject_non_finite(self)
@@ -224,6 +230,18 @@ VERIFIED_INDEX_INTERVAL_S = 0.25
 # true pairs instead of 9; on the samples 69 / 31 / 45 instead of 60 / 21 / 39, no false pair
 # (docs/results.md, "Frames smaller than the working size").
 VERIFIED_ENLARGE = True
+
+
+def shares_features(detector: Parameters, verification: VerificationParameters) -> bool:
+    """Whether the detector takes the verification's features (`shared_features`): both ORB,
+    detected on the same image (the frame shrunk or enlarged to one side)."""
+    return (
+        verification.shared_features
+        and verification.feature_detector == "orb"
+        and detector.feature_detector == "orb"
+        and detector.feature_image_max_side == verification.image_max_side
+        and detector.feature_image_enlarge
+    )
 
 
 def verified_defaults(given: Callable[[str], bool]) -> dict[str, Any]:
