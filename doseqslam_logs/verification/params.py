@@ -89,10 +89,11 @@ class VerificationParameters:
     leave_samples: int = 6
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
-    # the strongest of these features instead of extracting their own. Sharing made a parked
-    # camera's frames one sequence that matched itself before the motion rule; with the rule,
-    # docs/research/2026-12-06-shared-features.md. False: the detector extracts its own.
-    shared_features: bool = True
+    # the strongest of these features instead of extracting their own (about 1 ms of CPU a
+    # frame). Off by default: on the generalization matrix it added a false pair (2 -> 3, the
+    # same event) for 0.4 % more true pairs, and Lip6 Outdoor fell from 92.0 to 91.2 %
+    # (docs/research/2026-12-06-shared-features.md).
+    shared_features: bool = False
 
     def __post_init__(self) -> None:
         reject_non_finite(self)
