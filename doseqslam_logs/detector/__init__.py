@@ -14,6 +14,7 @@ from .params import Parameters
 if TYPE_CHECKING:
     from .difference import FrameStore
     from .doseqslam import DOSeqSLAM, PreparedFrame
+    from .segmentation import OrbFeatures
     from .seqslam import SeqSLAM
 
 __all__ = [
@@ -50,7 +51,7 @@ class Detector(Protocol):
     def memory_bytes(self) -> int: ...
 
     def prepare(
-        self, gray: npt.NDArray[np.uint8], descriptors: npt.NDArray[np.uint8] | None = None
+        self, gray: npt.NDArray[np.uint8], supplied: OrbFeatures | None = None
     ) -> PreparedFrame: ...
 
     def push(self, timestamp_ns: int, gray: npt.NDArray[np.uint8]) -> list[SequenceDecision]: ...

@@ -23,7 +23,6 @@ from .enhance import enhance
 from .events import Alternative, Candidate, SequenceDecision
 from .params import Parameters
 from .place_search import (
-    Descriptors,
     Exclusion,
     PlaceSearch,
     ScoredWindow,
@@ -36,6 +35,7 @@ from .preprocess import frame_vector
 from .segmentation import (
     SMALL_FRAME_SIDE,
     DescriptorSegmenter,
+    OrbFeatures,
     Segmenter,
     feature_count,
     make_segmenter,
@@ -172,21 +172,21 @@ class DOSeqSLAM:
         places = self._places.memory_bytes if self._places is not None else 0
         return self._store.nbytes + self._timestamps.itemsize * len(self._timestamps) + places
 
-    def prepare(self, gray: GrayImage, descriptors: Descriptors | None = None) -> PreparedFrame:
+    def prepare(self, gray: GrayImage, supplied: OrbFeatures | None = None) -> PreparedFrame:
         """The frame vector and segmentation features; thread-safe, needs no other frame.
 
-        `descriptors`: the frame's ORB descriptors, strongest first, that the caller already
-        extracted from the image this detector's ORB would see (`feature_image` at
-        feature_image_max_side, enlarged as the parameters say): an ORB segmentation and the
-        place index take the strongest max_features of them instead of extracting their own.
-        Ignored by any other segmentation.
+        `supplied`: the frame's ORB features that the caller already extracted from the image
+        this detector's ORB would see (`feature_image` at feature_image_max_side, enlarged as
+        the parameters say), with a budget of at least max_features: an ORB segmentation and
+        the place index take those ORB would have kept for max_features instead of extracting
+        their own. Ignored by any other segmentation.
         """
         p = self.params
         with self.timings.stage("preprocess"):
             vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)
         with self.timings.stage("features"):
-            if descriptors is not None and isinstance(self._segmenter, DescriptorSegmenter):
-                features = self._segmenter.supplied(descriptors)
+            if supplied is not None and isinstance(self._segmenter, DescriptorSegmenter):
+                features = self._segmenter.supplied(supplied)
             else:
                 features = self._segmenter.prepare(gray)
             places = None

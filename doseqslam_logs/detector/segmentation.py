@@ -168,6 +168,46 @@ def resolve_detector_name(requested: str) -> str:
     raise ValueError("no feature detector available")  # pragma: no cover - ORB is always there
 
 
+# ORB's defaults (cv2.ORB_create): its pyramid, over which a budget of n features is spread.
+ORB_SCALE_FACTOR = 1.2
+ORB_LEVELS = 8
+
+
+def orb_level_quota(
+    n: int, scale_factor: float = ORB_SCALE_FACTOR, levels: int = ORB_LEVELS
+) -> list[int]:
+    """The features ORB asked for n keeps on each pyramid level, as OpenCV's ORB computes them
+    (a geometric share per level, the rest on the last one; float32 as in its source)."""
+    factor = np.float32(1.0 / scale_factor)
+    per_level = np.float32(n * (1 - factor) / (1 - float(factor) ** levels))
+    quota = []
+    for _ in range(levels - 1):
+        quota.append(int(np.rint(per_level)))
+        per_level = np.float32(per_level * factor)
+    quota.append(max(n - sum(quota), 0))
+    return quota
+
+
+@dataclass(frozen=True)
+class OrbFeatures:
+    """ORB features of a frame that a caller already extracted on the image the segmentation
+    would see: descriptors strongest first, and each one's pyramid level (KeyPoint.octave)."""
+
+    descriptors: npt.NDArray[np.uint8]
+    levels: npt.NDArray[np.uint8]
+
+    def as_if_asked_for(self, n: int) -> npt.NDArray[np.uint8]:
+        """The descriptors ORB asked for n features would have kept: on each pyramid level the
+        strongest of its quota (`orb_level_quota`), in the original order. ORB ranks a level's
+        corners by response and keeps the level's quota, so a smaller budget keeps a prefix of
+        each level (up to FAST's pre-selection of twice the quota)."""
+        keep = np.zeros(len(self.levels), bool)
+        for level, quota in enumerate(orb_level_quota(n)):
+            on_level = np.flatnonzero(self.levels == level)
+            keep[on_level[:quota]] = True
+        return self.descriptors[keep]
+
+
 @dataclass
 class _Features:
     descriptors: npt.NDArray[Any] | None
@@ -215,12 +255,11 @@ class DescriptorSegmenter:
             descriptors = descriptors[order[: self._max_features]]
         return _Features(descriptors)
 
-    def supplied(self, descriptors: npt.NDArray[Any]) -> _Features:
-        """`prepare`'s result from descriptors the caller extracted (strongest first): the
-        strongest max_features of them."""
-        if len(descriptors) == 0:
-            return _Features(None)
-        return _Features(descriptors[: self._max_features])
+    def supplied(self, features: OrbFeatures) -> _Features:
+        """`prepare`'s result from ORB features the caller extracted: those ORB asked for
+        max_features would have kept (`OrbFeatures.as_if_asked_for`)."""
+        descriptors = features.as_if_asked_for(self._max_features)
+        return _Features(descriptors if len(descriptors) else None)
 
     def _surviving(self, current: _Features) -> _Features:
         """The common features that found a match in `current` (their own descriptors, so C is

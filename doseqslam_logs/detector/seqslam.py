@@ -21,6 +21,7 @@ from .enhance import enhance
 from .events import Candidate, SequenceDecision
 from .params import Parameters
 from .preprocess import frame_vector
+from .segmentation import OrbFeatures
 from .timing import StageTimes
 from .trajectory import normalize, trajectory_scores
 
@@ -56,11 +57,8 @@ class SeqSLAM:
         rows = sum(r.nbytes for r in self._rows)
         return self._store.nbytes + rows + self._timestamps.itemsize * len(self._timestamps)
 
-    def prepare(
-        self, gray: GrayImage, descriptors: npt.NDArray[np.uint8] | None = None
-    ) -> PreparedFrame:
-        """The frame vector (SeqSLAM needs no features: `descriptors` are ignored);
-        thread-safe."""
+    def prepare(self, gray: GrayImage, supplied: OrbFeatures | None = None) -> PreparedFrame:
+        """The frame vector (SeqSLAM needs no features: `supplied` is ignored); thread-safe."""
         p = self.params
         with self.timings.stage("preprocess"):
             vector = frame_vector(gray, p.image_width, p.image_height, p.patch_size)

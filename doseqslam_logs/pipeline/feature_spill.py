@@ -23,17 +23,17 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 
 from ..closing import Closing
 from ..detector.params import Parameters
+from ..detector.segmentation import OrbFeatures
 from ..verification.geometry import FrameFeatures, GrayImage, extract_features
 from ..verification.params import VerificationParameters, shares_features
 from .frame_spill import FileSpill
 
-# count (uint32), descriptor width (uint32), scale (float64), then the keypoints (float32
-# x, y) and the descriptors (uint8).
-_HEADER = struct.Struct("<IId")
+# count (uint32), descriptor width (uint32), scale (float64), whether pyramid levels follow
+# (uint8), then the keypoints (float32 x, y), the descriptors (uint8) and the levels (uint8).
+_HEADER = struct.Struct("<IIdB")
 
 
 class FeatureSpill(Closing):
@@ -63,9 +63,11 @@ class FeatureSpill(Closing):
     def compute(self, gray: GrayImage) -> FrameFeatures:
         return extract_features(gray, self.params)
 
-    def detector_descriptors(self, features: FrameFeatures) -> npt.NDArray[np.uint8] | None:
-        """The descriptors for the detector's segmentation and place index, when shared."""
-        return features.descriptors if self.shared else None
+    def detector_features(self, features: FrameFeatures) -> OrbFeatures | None:
+        """The features for the detector's segmentation and place index, when shared."""
+        if not self.shared or features.levels is None:
+            return None
+        return OrbFeatures(features.descriptors, features.levels)
 
     def keep(self, index: int, features: FrameFeatures) -> None:
         """Append frame `index`'s features (the frames must come in order, from 0).
@@ -76,8 +78,13 @@ class FeatureSpill(Closing):
         """
         if index != self.frames:
             raise ValueError(f"features of frame {index} kept after {self.frames} frames")
-        header = _HEADER.pack(features.count, features.descriptors.shape[1], features.scale)
+        levels = features.levels
+        header = _HEADER.pack(
+            features.count, features.descriptors.shape[1], features.scale, levels is not None
+        )
         record = header + features.keypoints.tobytes() + features.descriptors.tobytes()
+        if levels is not None:
+            record += levels.tobytes()
         start = self._offsets[-1]
         self._spill.write(start, memoryview(record))
         self._offsets.append(start + len(record))
@@ -89,15 +96,17 @@ class FeatureSpill(Closing):
         start, end = self._offsets[index], self._offsets[index + 1]
         record = bytearray(end - start)
         self._spill.read_into(start, memoryview(record))
-        count, width, scale = _HEADER.unpack_from(record)
+        count, width, scale, has_levels = _HEADER.unpack_from(record)
         keypoints_end = _HEADER.size + 8 * count
         keypoints = np.frombuffer(record, np.float32, 2 * count, _HEADER.size).reshape(count, 2)
         descriptors = np.frombuffer(record, np.uint8, count * width, keypoints_end)
+        levels_at = keypoints_end + count * width
         return FrameFeatures(
             keypoints=keypoints,
             descriptors=descriptors.reshape(count, width),
             detector=self.params.feature_detector,
             scale=scale,
+            levels=np.frombuffer(record, np.uint8, count, levels_at) if has_levels else None,
         )
 
     def close(self) -> None:

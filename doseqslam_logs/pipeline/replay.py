@@ -10,7 +10,7 @@ A later stage that needs something of every decoded frame (verification's featur
 pipeline.feature_spill) hands the replay a `FrameSideWork`: its `compute` runs beside
 `prepare` on the pool, its `keep` on the calling thread in frame order, so the frames are
 decoded once; where its features are the detector's too, `prepare` takes them
-(`detector_descriptors`), so they are also extracted once.
+(`detector_features`), so they are also extracted once.
 """
 
 from __future__ import annotations
@@ -22,15 +22,15 @@ from array import array
 from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Generic, Protocol, TypeVar
-
-import numpy as np
-import numpy.typing as npt
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 from .. import waiting
 from ..detector import Detector, PreparedFrame, SequenceDecision
 from ..sources.frame import Frame
 from ..verification.geometry import GrayImage
+
+if TYPE_CHECKING:
+    from ..detector.segmentation import OrbFeatures
 
 ProgressCallback = Callable[[int], None]
 
@@ -81,8 +81,8 @@ class FrameSideWork(Protocol, Generic[T]):
         """On the detector's thread, for frame 0, 1, ... in order."""
         ...
 
-    def detector_descriptors(self, result: T) -> npt.NDArray[np.uint8] | None:
-        """ORB descriptors of `compute`'s result for `detector.prepare` to use instead of
+    def detector_features(self, result: T) -> OrbFeatures | None:
+        """ORB features of `compute`'s result for `detector.prepare` to use instead of
         extracting its own (one extraction a frame), or None."""
         ...
 
@@ -94,7 +94,7 @@ class _NoSideWork:
     def keep(self, index: int, result: None) -> None:
         pass
 
-    def detector_descriptors(self, result: None) -> None:
+    def detector_features(self, result: None) -> None:
         return None
 
 
@@ -210,7 +210,7 @@ def prepared_frames(
 
     def prepare(gray: GrayImage) -> _Prepared:
         computed = work.compute(gray)
-        return detector.prepare(gray, work.detector_descriptors(computed)), computed
+        return detector.prepare(gray, work.detector_features(computed)), computed
 
     if workers <= 1:
         for frame in frames:

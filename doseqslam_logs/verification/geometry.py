@@ -97,6 +97,9 @@ class FrameFeatures:
     # Feature-image pixels per original pixel (the smaller axis): < 1 for a shrunk frame, > 1
     # for a small one enlarged (`feature_image`), 1 for a frame detected at its own size.
     scale: float
+    # ORB only: each feature's pyramid level (KeyPoint.octave), so that the segmentation can
+    # take the features ORB would keep with a smaller budget (segmentation.OrbFeatures).
+    levels: npt.NDArray[np.uint8] | None = None
 
     @property
     def count(self) -> int:
@@ -176,11 +179,15 @@ def _detect(gray: GrayImage, max_side: int, params: VerificationParameters) -> F
     order = np.lexsort((xy[:, 1], xy[:, 0], -response))[: params.max_features]
     # Pixel centres: x_original = (x_small + 0.5) / scale - 0.5 (cv2.resize's convention).
     original = (xy[order] + 0.5) / scale_xy - 0.5
+    levels = None
+    if params.feature_detector == "orb":
+        levels = np.array([k.octave for k in keypoints], dtype=np.uint8)[order]
     return FrameFeatures(
         keypoints=np.ascontiguousarray(original, dtype=np.float32),
         descriptors=np.ascontiguousarray(descriptors[order], dtype=np.uint8),
         detector=params.feature_detector,
         scale=scale,
+        levels=levels,
     )
 
 

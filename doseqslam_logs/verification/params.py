@@ -89,11 +89,11 @@ class VerificationParameters:
     leave_samples: int = 6
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
-    # the strongest of these features instead of extracting their own (about 1 ms of CPU a
-    # frame). Off by default: on the generalization matrix it added a false pair (2 -> 3, the
-    # same event) for 0.4 % more true pairs, and Lip6 Outdoor fell from 92.0 to 91.2 %
-    # (docs/research/2026-12-06-shared-features.md).
-    shared_features: bool = False
+    # the features of these that ORB would keep for their budget (on each pyramid level the
+    # strongest of its quota) instead of extracting their own: about 1 ms of CPU a frame; the
+    # same false pairs on the generalization matrix, 1.5 % more true ones
+    # (docs/research/2026-12-06-shared-features.md). False: the detector extracts its own.
+    shared_features: bool = True
 
     def __post_init__(self) -> None:
         reject_non_finite(self)
