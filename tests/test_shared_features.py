@@ -122,6 +122,8 @@ def test_a_segmentation_that_is_not_orb_ignores_them() -> None:
         ({"feature_image_enlarge": False}, {"shared_features": True}, False),  # not enlarged
         ({"feature_detector": "sift"}, {"shared_features": True}, False),
         ({}, {"feature_detector": "sift", "shared_features": True}, False),
+        ({}, {"max_features": 400}, False),  # fewer than the segmentation's 500
+        ({"max_features": 1000}, {}, True),
     ],
 )
 def test_features_are_shared_only_where_both_extract_the_same(

@@ -50,7 +50,7 @@ class FeatureSpill(Closing):
         directory: str | Path | None = None,
         shared: bool = False,
     ) -> None:
-        """`shared`: the detector takes these features too (`detector_descriptors`)."""
+        """`shared`: the detector takes these features too (`detector_features`)."""
         self.params = params
         self.shared = shared
         self._spill = FileSpill(directory, what="the frames' features")

@@ -235,13 +235,15 @@ VERIFIED_ENLARGE = True
 
 def shares_features(detector: Parameters, verification: VerificationParameters) -> bool:
     """Whether the detector takes the verification's features (`shared_features`): both ORB,
-    detected on the same image (the frame shrunk or enlarged to one side)."""
+    detected on the same image (the frame shrunk or enlarged to one side), with at least the
+    detector's budget."""
     return (
         verification.shared_features
         and verification.feature_detector == "orb"
         and detector.feature_detector == "orb"
         and detector.feature_image_max_side == verification.image_max_side
         and detector.feature_image_enlarge
+        and verification.max_features >= detector.max_features
     )
 
 
