@@ -105,17 +105,20 @@ def test_verified_figures_on_the_rtabmap_samples(verified_json) -> None:
     assert cost["candidate_pairs"] == doc["tp"] + doc["fp"]
     assert cost["accepted_pairs"] == verified["tp"] + verified["fp"]
     assert cost["frame_pairs_checked"] >= cost["candidate_pairs"] > 0
-    # RTAB-Map with the ORB segmentation of verified runs: every accepted pair is on the
-    # detector's own trajectory (one was on a next-best one with SIFT's sequences).
-    assert cost["accepted_on_alternatives"] == 0
+    # RTAB-Map with the ORB segmentation of verified runs, its features shared with
+    # verification: 2 of the 40 accepted pairs are on a next-best trajectory (0 with its own
+    # extraction, 1 with SIFT's sequences); they pass the second guess's doubled bar.
+    assert cost["accepted_on_alternatives"] <= 2
 
 
 def test_verified_report_puts_raw_and_verified_side_by_side(verified_text, verified_json) -> None:
     lines = verified_text.splitlines()
     cost = verified_json["verification_cost"]
+    on_alternatives = cost["accepted_on_alternatives"]
+    alternatives = f", {on_alternatives} of them on a next-best trajectory" * bool(on_alternatives)
     assert re.search(
         rf"; verification {VerificationParameters().hash}: {cost['candidate_pairs']} candidate "
-        rf"pairs verified, {cost['accepted_pairs']} accepted "  # none on a next-best trajectory
+        rf"pairs verified, {cost['accepted_pairs']} accepted{alternatives} "
         rf"\({cost['frame_pairs_checked']} "
         r"frame pairs checked, \d+\.\d ms each, \d+\.\d s; fundamental matrix, no intrinsics\)$",
         lines[0],

@@ -63,11 +63,13 @@ def test_second_guesses_need_twice_the_inliers_and_the_noisy_cell_has_no_false_p
     reported = annotated.reported_loop_closures
     assert all(lc.inliers >= 2 * BAR for lc in reported if lc.proposal != 0)
     assert all(lc.inliers >= BAR for lc in reported)
-    # A turned-down second guess is mostly overwritten by the detector's own rejected check.
+    # A turned-down second guess is mostly overwritten by the detector's own rejected check;
+    # one that stays (the own proposal given up) is recorded without its proposal, which
+    # records keep for accepted pairs only (annotations.writer).
     turned_down = [
         lc for lc in annotated.loop_closures if lc.rejection_reason == SECOND_GUESS_REASON
     ]
-    assert all(lc.proposal != 0 and BAR <= lc.inliers < 2 * BAR for lc in turned_down)
+    assert all(BAR <= lc.inliers < 2 * BAR for lc in turned_down)
     assert len(reported) >= 100  # 174 measured
     assert [lc for lc in reported if not gt[lc.query.index, lc.matched.index]] == []
 

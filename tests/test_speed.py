@@ -126,7 +126,7 @@ class _Failing:
         self.feature_detector = self.inner.feature_detector
         self.memory_bytes = 0
 
-    def prepare(self, gray: np.ndarray) -> PreparedFrame:
+    def prepare(self, gray: np.ndarray, supplied: object = None) -> PreparedFrame:
         return self.inner.prepare(gray)
 
     def push_prepared(self, timestamp_ns: int, frame: PreparedFrame) -> list:
