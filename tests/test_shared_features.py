@@ -54,7 +54,7 @@ def test_the_level_quota_spends_the_whole_budget_strongest_level_first(n: int) -
     assert len(quota) == ORB_LEVELS and sum(quota) == max(n, sum(quota[:-1]))
     assert sum(quota) <= n + ORB_LEVELS
     assert all(q >= 0 for q in quota)
-    assert quota[:-1] == sorted(quota[:-1], reverse=True)  # each level smaller than the last
+    assert list(quota[:-1]) == sorted(quota[:-1], reverse=True)  # each level smaller than the last
 
 
 def test_the_level_quota_is_orbs(orb_frames: list[np.ndarray]) -> None:

@@ -173,11 +173,13 @@ ORB_SCALE_FACTOR = 1.2
 ORB_LEVELS = 8
 
 
+@functools.lru_cache(maxsize=16)
 def orb_level_quota(
     n: int, scale_factor: float = ORB_SCALE_FACTOR, levels: int = ORB_LEVELS
-) -> list[int]:
+) -> tuple[int, ...]:
     """The features ORB asked for n keeps on each pyramid level, as OpenCV's ORB computes them
-    (a geometric share per level, the rest on the last one; float32 as in its source)."""
+    (a geometric share per level, the rest on the last one; float32 as in its source). Cached:
+    every shared frame asks for the same budget."""
     factor = np.float32(1.0 / scale_factor)
     per_level = np.float32(n * (1 - factor) / (1 - float(factor) ** levels))
     quota = []
@@ -185,7 +187,7 @@ def orb_level_quota(
         quota.append(int(np.rint(per_level)))
         per_level = np.float32(per_level * factor)
     quota.append(max(n - sum(quota), 0))
-    return quota
+    return tuple(quota)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from array import array
 from bisect import bisect_right
 from collections import deque
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -21,9 +22,11 @@ from .enhance import enhance
 from .events import Candidate, SequenceDecision
 from .params import Parameters
 from .preprocess import frame_vector
-from .segmentation import OrbFeatures
 from .timing import StageTimes
 from .trajectory import normalize, trajectory_scores
+
+if TYPE_CHECKING:
+    from .segmentation import OrbFeatures
 
 GrayImage = npt.NDArray[np.uint8]
 FloatArray = npt.NDArray[np.float32]
