@@ -17,8 +17,7 @@ from test_sinks import make_decisions, make_frame_times, write_json_mcap
 from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.detector.difference import FrameStore, sad_columns, sad_rows
 from doseqslam_logs.errors import OutputError
-from doseqslam_logs.pipeline import annotate as annotate_module
-from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, StageObserver, annotate_log
 from doseqslam_logs.pipeline.frame_spill import FileSpill, spilled_frame_store
 from doseqslam_logs.sinks.mcap_writer import Annotations, write_annotated_mcap
 from doseqslam_logs.sinks.message_spool import SpooledMessages, in_order
@@ -102,27 +101,27 @@ def test_the_pipeline_store_fits_the_parameters_and_a_wrong_one_is_refused() -> 
         make_detector(params, FrameStore(16, "uint8"))
 
 
-def test_annotate_frees_its_detector_before_the_later_stages(tmp_path, monkeypatch) -> None:
+def test_annotate_frees_its_detector_before_the_later_stages(tmp_path) -> None:
     """The detector's place index and frame vectors grow with the log: nothing may hold them
     once the replay is over."""
-    made: list[weakref.ref[object]] = []
-    real = annotate_module.make_detector
 
-    def tracked(*args: Any) -> Any:
-        detector = real(*args)
-        made.append(weakref.ref(detector))
-        return detector
+    class Watch(StageObserver):
+        def __init__(self) -> None:
+            self.made: list[weakref.ref[object]] = []
+            self.alive_at: dict[str, bool] = {}
 
-    alive_at: dict[str, bool] = {}
+        def detector_made(self, detector: object) -> None:
+            self.made.append(weakref.ref(detector))
 
-    def stage(name: str) -> None:
-        gc.collect()
-        alive_at[name] = any(ref() is not None for ref in made)
+        def started(self, stage: str) -> None:
+            gc.collect()
+            self.alive_at[stage] = any(ref() is not None for ref in self.made)
 
-    monkeypatch.setattr(annotate_module, "make_detector", tracked)
+    watch = Watch()
     options = AnnotateOptions(verification=None, visualization=False)
-    annotate_log(SAMPLE, tmp_path / "out.mcap", Parameters(), options, stage=stage)
-    assert alive_at == {"replay": True, "write": False}
+    annotate_log(SAMPLE, tmp_path / "out.mcap", Parameters(), options, observer=watch)
+    assert len(watch.made) == 1
+    assert watch.alive_at == {"replay": True, "write": False}
 
 
 # -- the output messages' spool ----------------------------------------------------------------

@@ -30,12 +30,8 @@ from doseqslam_logs.annotations.writer import loop_closure_messages, sequence_me
 from doseqslam_logs.detector.events import Candidate, SequenceDecision
 from doseqslam_logs.errors import OutputError, SourceError
 from doseqslam_logs.sinks.encoders import ENCODERS, Ros1Encoder, Ros2Encoder, encoder_for_profile
-from doseqslam_logs.sinks.mcap_writer import (
-    Annotations,
-    detect_input,
-    mcap_profile,
-    write_annotated_mcap,
-)
+from doseqslam_logs.sinks.mcap_writer import Annotations, write_annotated_mcap
+from doseqslam_logs.sources.formats import plan_copy
 
 REPO = Path(__file__).resolve().parents[1]
 ROS2_MCAP = "rosbag2_mcap_rerun_sensor_msgs/rosbag2_2025_09_10-13_03_56_0.mcap"
@@ -437,7 +433,7 @@ def test_sidecar_holds_only_ours(shared_data: Path, tmp_path: Path, source_name:
     assert sorted(c.topic for c in content["channels"].values()) == list(OURS)
     assert Counter(m[0] for m in content["messages"]) == {OURS[0]: 5, OURS[1]: 3}
     assert [m[0] for m in content["metadata"]] == ["doseqslam"]
-    assert content["header"].profile == mcap_profile(shared_data / source_name)
+    assert content["header"].profile == plan_copy(shared_data / source_name).profile
 
 
 # --- ROS 1 bag ----------------------------------------------------------------------------
@@ -539,24 +535,24 @@ def test_rosbag2_db3_copied_losslessly(shared_data: Path, tmp_path: Path) -> Non
 
 def test_rosbag2_mcap_folder_is_copied_as_mcap(shared_data: Path, tmp_path: Path) -> None:
     source = shared_data / ROSBAG2_MCAP_DIR
-    assert detect_input(source).kind == "mcap"
+    assert plan_copy(source).kind == "mcap"
     output = tmp_path / "talker.mcap"
     write_annotated_mcap(source, output, make_annotations(1_585_866_235_112_411_371))
     assert_copied(read_mcap(source / "talker.mcap"), read_mcap(output))
 
 
 def test_profiles_of_each_input_kind(shared_data: Path, tmp_path: Path) -> None:
-    assert mcap_profile(shared_data / ROS2_MCAP) == "ros2"
-    assert mcap_profile(shared_data / ROS1_BAG) == "ros1"
-    assert mcap_profile(shared_data / ROSBAG2_DB3) == "ros2"
-    assert detect_input(shared_data / ROSBAG2_DB3 / "talker.db3").path == shared_data / ROSBAG2_DB3
+    assert plan_copy(shared_data / ROS2_MCAP).profile == "ros2"
+    assert plan_copy(shared_data / ROS1_BAG).profile == "ros1"
+    assert plan_copy(shared_data / ROSBAG2_DB3).profile == "ros2"
+    assert plan_copy(shared_data / ROSBAG2_DB3 / "talker.db3").path == shared_data / ROSBAG2_DB3
     write_json_mcap(tmp_path / "log.mcap", "foxglove")
-    assert mcap_profile(tmp_path / "log.mcap") == "foxglove"
+    assert plan_copy(tmp_path / "log.mcap").profile == "foxglove"
     (tmp_path / "notes.txt").write_text("not a log")
     with pytest.raises(SourceError, match=r"notes\.txt"):
-        mcap_profile(tmp_path / "notes.txt")
+        plan_copy(tmp_path / "notes.txt")
     with pytest.raises(SourceError, match="missing"):
-        mcap_profile(tmp_path / "missing.mcap")
+        plan_copy(tmp_path / "missing.mcap")
 
 
 # --- JSON (foxglove, no profile) ----------------------------------------------------------

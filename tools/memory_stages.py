@@ -32,8 +32,7 @@ from typing import Any
 
 import numpy as np
 
-import doseqslam_logs.pipeline.annotate as annotate_module
-from doseqslam_logs.sinks.mcap_writer import Annotations
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, StageObserver, annotate_log
 from doseqslam_logs.sources import open_source, pick_image_topic
 
 
@@ -84,13 +83,13 @@ def _mb(value: int) -> float:
     return round(value / 2**20, 2)
 
 
-class Probe:
-    """Wraps the annotate module's stage functions and records memory around each."""
+class Probe(StageObserver):
+    """Hears the run's stages (pipeline.annotate.StageObserver) and records memory after each."""
 
     def __init__(self) -> None:
         self.rows: list[dict[str, Any]] = []
         self.detector: Any = None
-        self.started = time.perf_counter()
+        self.started_at = time.perf_counter()
 
     def record(self, stage: str, sizes: Callable[[], dict[str, int]] = dict) -> None:
         """Memory now and the stage's peak, then the deep sizes (measured after, so that
@@ -99,7 +98,7 @@ class Probe:
             "stage": stage,
             "rss_mb": _mb(_status("VmRSS")),
             "stage_peak_mb": _mb(_status("VmHWM")),
-            "t_s": round(time.perf_counter() - self.started, 1),
+            "t_s": round(time.perf_counter() - self.started_at, 1),
         }
         row.update(  # MB, counts as they are
             {k: v if k.endswith("_count") else _mb(v) for k, v in sizes().items()}
@@ -108,42 +107,21 @@ class Probe:
         print(json.dumps(row), flush=True)
         _reset_peak()
 
-    def wrap(self, name: str, after: Callable[[Any], dict[str, int]]) -> None:
-        original = getattr(annotate_module, name)
+    def detector_made(self, detector: Any) -> None:
+        self.detector = detector
 
-        def wrapped(*args: Any, **kwargs: Any) -> Any:
-            result = original(*args, **kwargs)
-            self.record(name, lambda: after(result))
-            return result
-
-        setattr(annotate_module, name, wrapped)
-
-    def install(self) -> None:
-        make_detector = annotate_module.make_detector
-
-        def keep_detector(*args: Any) -> Any:  # (params), or (params, store) since the spill
-            self.detector = make_detector(*args)
-            return self.detector
-
-        annotate_module.make_detector = keep_detector
-        self.wrap("replay", lambda result: {**self.detector_parts(), **decisions_of(result)})
-        self.wrap("_detect", self.forget_detector)
-        self.wrap("verify_decisions", verified_of)
-        self.wrap("metric_edges", lambda metric: {"metric_edges": deep_size(metric)})
-        self.wrap("write_annotated_mcap", lambda _: {})
-        from_decisions = Annotations.from_decisions.__func__  # type: ignore[attr-defined]
-
-        def annotations(cls: type[Annotations], *args: Any, **kwargs: Any) -> Annotations:
-            made: Annotations = from_decisions(cls, *args, **kwargs)
-            self.record("annotations", lambda: messages_of(made.messages))
-            return made
-
-        Annotations.from_decisions = classmethod(annotations)  # type: ignore[assignment]
-
-    def forget_detector(self, _: Any) -> dict[str, int]:
-        """annotate frees its detector after the replay (since `_detect`): so does the probe."""
-        self.detector = None
-        return {}
+    def finished(self, stage: str, product: object) -> None:
+        if stage == "replay":
+            self.record("replay", lambda: {**self.detector_parts(), **decisions_of(product)})
+            self.detector = None  # the run frees its detector now: so does the probe
+        elif stage == "verify":
+            self.record("verify_decisions", lambda: verified_of(product))
+        elif stage == "metric":
+            self.record("metric_edges", lambda: {"metric_edges": deep_size(product)})
+        elif stage == "annotations":
+            self.record("annotations", lambda: messages_of(getattr(product, "messages", ())))
+        elif stage == "write":
+            self.record("write_annotated_mcap")
 
     def detector_parts(self) -> dict[str, int]:
         d = self.detector
@@ -234,10 +212,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     topic, end_ns = _end_ns(args.log, args.minutes)
     probe = Probe()
-    probe.install()
     probe.record("start")
-    options = annotate_module.AnnotateOptions(topic=topic, end_ns=end_ns)
-    result = annotate_module.annotate_log(args.log, args.output, options=options)
+    options = AnnotateOptions(topic=topic, end_ns=end_ns)
+    result = annotate_log(args.log, args.output, options=options, observer=probe)
     summary = {
         "frames": result.replay.frames,
         "sequences": len(result.replay.decisions),

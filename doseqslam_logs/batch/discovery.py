@@ -19,10 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import UsageError
+from ..sources.formats import is_log_folder, log_file_suffixes
 
-LOG_SUFFIXES = (".mcap", ".bag", ".db3")
 OUTPUT_SUFFIX = ".annotated.mcap"
-ROSBAG2_METADATA = "metadata.yaml"
 GLOB_MAGIC = frozenset("*?[")
 
 
@@ -32,10 +31,6 @@ class LogInput:
 
     path: Path
     relative_output: Path
-
-
-def is_rosbag2_folder(path: Path) -> bool:
-    return path.is_dir() and (path / ROSBAG2_METADATA).is_file()
 
 
 def output_name(log: Path) -> str:
@@ -50,6 +45,7 @@ def _is_inside(path: Path, folder: Path) -> bool:
 
 def _search(folder: Path, outdir: Path) -> Iterator[Path]:
     """The logs under `folder`, in name order; rosbag2 folders are not entered."""
+    suffixes = log_file_suffixes()
     for dirpath, dirnames, filenames in os.walk(folder):
         here = Path(dirpath)
         dirnames.sort()
@@ -58,13 +54,13 @@ def _search(folder: Path, outdir: Path) -> Iterator[Path]:
             child = here / name
             if _is_inside(child, outdir):
                 continue
-            if is_rosbag2_folder(child):
+            if is_log_folder(child):
                 yield child
             else:
                 kept.append(name)
         dirnames[:] = kept  # os.walk descends only into these
         for name in sorted(filenames):
-            if name.endswith(LOG_SUFFIXES) and not name.endswith(OUTPUT_SUFFIX):
+            if name.endswith(suffixes) and not name.endswith(OUTPUT_SUFFIX):
                 yield here / name
 
 
@@ -72,7 +68,7 @@ def _expand(path: Path) -> tuple[list[Path], list[Path]]:
     """(folders to search, logs) of one existing path: a folder, or a log (a rosbag2 folder
     is a log)."""
     path = path.resolve()
-    if path.is_dir() and not is_rosbag2_folder(path):
+    if path.is_dir() and not is_log_folder(path):
         return [path], []
     return [], [path]
 
@@ -115,7 +111,8 @@ def discover_logs(inputs: Sequence[str], outdir: Path) -> list[LogInput]:
             found.append(log)
     unique = list(dict.fromkeys(found))
     if not unique:
-        raise UsageError(f"no logs (.mcap, .bag, .db3, rosbag2 folders) in {' '.join(inputs)}")
+        kinds = ", ".join(log_file_suffixes())
+        raise UsageError(f"no logs ({kinds}, rosbag2 folders) in {' '.join(inputs)}")
     base = Path(os.path.commonpath(anchors))
     return _with_output_names(unique, base)
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import __version__, waiting
 from ..annotations.records import NO_STAMP, FrameTimes, RunMetadata
-from ..detector import Parameters, make_detector
+from ..detector import Detector, Parameters, make_detector
 from ..errors import (
     DoseqslamError,
     ImageDecodeError,
@@ -39,10 +39,11 @@ from ..sinks.mcap_writer import (
 )
 from ..sinks.output_format import OutputFormat
 from ..sinks.visualization import Visualization, read_trajectory, visual_loops
-from ..sources import Log, is_mcap_file, open_source, pick_image_topic
+from ..sources import Log, is_mcap_file, pick_image_topic
 from ..sources.base import Promise, Source
 from ..sources.camera_info import find_camera_info
 from ..sources.digest import source_sha256
+from ..sources.formats import LogFormat, format_of
 from ..sources.frame import Frame
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.images import decode_gray
@@ -86,9 +87,39 @@ ASSUMED = "assumed"
 StageCallback = Callable[[str], None]
 
 
-def _announce(stage: StageCallback | None, name: str) -> None:
-    if stage is not None:
-        stage(name)
+class StageObserver:
+    """Hears a run's stages: the command's progress, the batch workers, the memory probe
+    (tools/memory_stages.py) and the tests watch a run through one of these. Each method
+    does nothing here; a subclass overrides the ones it needs."""
+
+    def started(self, stage: str) -> None:
+        """`stage`, one of STAGES, begins ("verify" and "metric" only with verification)."""
+
+    def detector_made(self, detector: Detector) -> None:
+        """The replay's detector, before its first frame. The run frees it when the replay
+        ends: an observer that keeps it must let it go at `finished("replay", ...)`."""
+
+    def finished(self, stage: str, product: object) -> None:
+        """A step ended with its product: "replay" a ReplayResult, "verify" a Verification,
+        "metric" a MetricEdges, "annotations" the Annotations (our messages, built before the
+        write), "write" the WriteSummary."""
+
+
+class _Announcing(StageObserver):
+    """`observer`, and `stage(name)` as each stage begins."""
+
+    def __init__(self, stage: StageCallback, observer: StageObserver) -> None:
+        self.stage, self.observer = stage, observer
+
+    def started(self, stage: str) -> None:
+        self.stage(stage)
+        self.observer.started(stage)
+
+    def detector_made(self, detector: Detector) -> None:
+        self.observer.detector_made(detector)
+
+    def finished(self, stage: str, product: object) -> None:
+        self.observer.finished(stage, product)
 
 
 @dataclass(frozen=True)
@@ -437,6 +468,7 @@ def annotate_log(
     progress: Callable[[int], None] | None = None,
     expected: Callable[[int | None], None] | None = None,
     stage: StageCallback | None = None,
+    observer: StageObserver | None = None,
 ) -> AnnotateResult:
     """Replay the detector over the log's camera topic and write the annotated MCAP.
 
@@ -446,8 +478,9 @@ def annotate_log(
     `annotate --no-verify`. Parameters given are used as they are.
 
     `progress(frames done)` is called after each frame, `expected(image messages or None)`
-    once the topic is known, `stage(name)` as each of STAGES begins ("verify" only with
-    verification on). The input is only read; the output appears whole or not at all.
+    once the topic is known, `stage(name)` as each of STAGES begins ("verify" and "metric"
+    only with verification on); `observer` hears the stages and their products. The input is
+    only read; the output appears whole or not at all.
 
     Raises SourceError / NoCameraError (input), ImageDecodeError / TimestampError (a frame
     with on_error="fail"; ImageDecodeError also when not one image could be decoded),
@@ -460,8 +493,12 @@ def annotate_log(
     check_output_path(output)  # before the detector runs, not after
     if log.exists():
         refuse_same_file(log, output)
+    observer = observer or StageObserver()
+    if stage is not None:
+        observer = _Announcing(stage, observer)
+    callbacks = _Callbacks(progress, expected, observer)
     if not (options.recover and is_mcap_file(log)):
-        return _annotate(log, log, output, params, options, (progress, expected, stage), None)
+        return _annotate(log, log, output, params, options, callbacks, None)
     with scratch_file(output) as repaired:
         try:
             with repaired.open("wb") as stream:
@@ -476,7 +513,6 @@ def annotate_log(
                 f"{log}: nothing to recover: not one complete message ({report.describe()})"
             )
         try:
-            callbacks = (progress, expected, stage)
             return _annotate(repaired, log, output, params, options, callbacks, report)
         except DoseqslamError as exc:
             # Messages about the recovered copy are about the log, for whoever reads them.
@@ -493,26 +529,242 @@ def _window(options: AnnotateOptions) -> str:
     return f" with log time in [{start}, {end}) (-S/-E)"
 
 
-_Callbacks = tuple[
-    Callable[[int], None] | None, Callable[[int | None], None] | None, StageCallback | None
-]
+@dataclass(frozen=True)
+class _Callbacks:
+    """What annotate_log's caller hears: frames done, image messages expected, stages."""
+
+    progress: Callable[[int], None] | None
+    expected: Callable[[int | None], None] | None
+    observer: StageObserver
 
 
-def _detect(
-    params: Parameters,
-    frames: Iterable[Frame],
-    workers: int,
-    progress: Callable[[int], None] | None,
-    stage: StageCallback | None,
-    features: FeatureSpill | None,
-) -> ReplayResult:
-    """The replay stage (which also fills `features`, when given). Its detector, whose place
-    index and frame vectors grow with the log (hundreds of MB on a 4-hour log), is freed when
-    this returns, before the later stages."""
-    with spilled_frame_store(params) as store:
-        detector = make_detector(params, store)
-        _announce(stage, "replay")
-        return replay(frames, detector, progress, workers, features)
+@dataclass(frozen=True)
+class OpenLog:
+    """A run's input: the log opened once, through which every stage reads."""
+
+    source: Source  # reads `read_path`: the log, or the copy --recover made of it
+    log_format: LogFormat
+    path: Path  # the log as given, for messages and the metadata
+    recovery: SalvageReport | None  # what --recover found (None: not recovered)
+
+
+@dataclass
+class _Replayed:
+    """What the replay stage leaves for the later ones."""
+
+    topic: str
+    result: ReplayResult
+    promise: Promise | None
+    unattributed: int
+    counts: FrameCounts
+    frame_times: FrameTimes
+    first_shape: tuple[int, int] | None
+    first_size: str
+
+
+class _Run:
+    """One run's stages over its open log, in order: replay, verify, metric, write."""
+
+    def __init__(
+        self,
+        log: OpenLog,
+        output: Path,
+        params: Parameters,
+        options: AnnotateOptions,
+        callbacks: _Callbacks,
+    ) -> None:
+        self.log, self.output, self.params, self.options = log, output, params, options
+        self.callbacks = callbacks
+        self.observer = callbacks.observer
+
+    def annotate(self, digest: Future[str]) -> AnnotateResult:
+        options = self.options
+        # verification's features, extracted as the replay decodes the frames
+        with feature_spill_for(options.verification, self.params) as features:
+            replayed = self.replay(features)
+            odometry = Odometry(None)
+            if options.verification is not None:
+                self.observer.started("verify")
+                odometry = read_odometry(
+                    self.log.source,
+                    replayed.frame_times,
+                    options.time_source,
+                    options.odometry_topic,
+                )
+            verification = self.verify(replayed, features, odometry)
+        if verification is not None:
+            self.observer.started("metric")
+            verification.metric = self.metric(replayed, verification, odometry)
+            self.observer.finished("metric", verification.metric)
+        sha256 = waiting.result(digest)
+        annotations, health = self.annotations(replayed, verification, sha256)
+        track = None if odometry.frames is None else odometry.frames.track
+        try:
+            written = self.write(annotations, replayed.topic, track)
+        finally:
+            annotations.close()
+        log = self.log
+        return AnnotateResult(
+            log.path,
+            self.output,
+            replayed.topic,
+            replayed.result,
+            replayed.counts,
+            written,
+            sha256,
+            log.recovery,
+            replayed.promise,
+            replayed.unattributed,
+            verification,
+            health,
+        )
+
+    def replay(self, features: FeatureSpill | None) -> _Replayed:
+        """The replay stage: the camera topic's frames through the detector (which also fills
+        `features`, when given)."""
+        log, options = self.log, self.options
+        source, counts, recorder = log.source, FrameCounts(), _TimesRecorder()
+        topic = pick_image_topic(source, options.topic)
+        recovery = log.recovery
+        if recovery is not None and recovery.lost_by_topic.get(topic):
+            lost = recovery.lost_by_topic[topic]
+            counts.messages += lost
+            counts.skip(SKIP_CORRUPT_CHUNK, f"{lost} messages of {topic} in corrupt chunks", lost)
+        promise = promised(source, log.path, topic, options, recovery is not None)
+        unattributed = source.unattributed_messages()
+        expected = self.callbacks.expected
+        if expected is not None:
+            expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
+        messages = source.image_messages(topic, options.start_ns, options.end_ns)
+        decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
+        frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
+        try:
+            result = self._detect(recorder(frames), features)
+        except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
+            exc.args = (f"{log.path}: {exc}", *exc.args[1:])
+            raise
+        self.observer.finished("replay", result)
+        release_freed_memory()
+        count_missing(counts, promise, log.path, topic)
+        refuse_no_frame(counts, recovery, log.path, topic, _window(options))
+        frame_times = recorder.frame_times()
+        return _Replayed(
+            topic,
+            result,
+            promise,
+            unattributed,
+            counts,
+            frame_times,
+            recorder.first_shape,
+            recorder.first_size,
+        )
+
+    def _detect(self, frames: Iterable[Frame], features: FeatureSpill | None) -> ReplayResult:
+        """The detector over the frames. The detector, whose place index and frame vectors
+        grow with the log (hundreds of MB on a 4-hour log), is freed when this returns,
+        before the later stages."""
+        with spilled_frame_store(self.params) as store:
+            detector = make_detector(self.params, store)
+            self.observer.detector_made(detector)
+            self.observer.started("replay")
+            workers = self.options.workers
+            return replay(frames, detector, self.callbacks.progress, workers, features)
+
+    def verify(
+        self, replayed: _Replayed, features: FeatureSpill | None, odometry: Odometry
+    ) -> Verification | None:
+        """The verification stage (None when it is off)."""
+        verification = verify_decisions(
+            self.log.source,
+            replayed.topic,
+            replayed.result,
+            replayed.frame_times,
+            self.options,
+            features,
+            odometry.frames,
+            replayed.first_shape,
+        )
+        if verification is not None:
+            self.observer.finished("verify", verification)
+        return verification
+
+    def metric(
+        self, replayed: _Replayed, verification: Verification, odometry: Odometry
+    ) -> MetricEdges:
+        """The metric stage: the accepted pairs' metric poses."""
+        options = self.options
+        return metric_edges(
+            self.log.source,
+            replayed.topic,
+            replayed.frame_times,
+            verification.decisions,
+            verification.metric_intrinsics,
+            verification.params,
+            time_source=options.time_source,
+            odometry_topic=options.odometry_topic,
+            max_pixels=options.max_pixels,
+            workers=options.workers,
+            odometry=odometry,
+            no_intrinsics=verification.no_intrinsics_reason,
+        )
+
+    def annotations(
+        self, replayed: _Replayed, verification: Verification | None, sha256: str
+    ) -> tuple[Annotations, FeatureHealth]:
+        """Our messages and metadata for the decisions (spooled: `close` when written)."""
+        params, options, log, result = self.params, self.options, self.log, replayed.result
+        metadata = run_metadata(
+            params,
+            result,
+            replayed.counts,
+            log.path,
+            sha256,
+            replayed.topic,
+            options,
+            log.recovery,
+            replayed.promise,
+            replayed.unattributed,
+        )
+        if verification is not None:
+            metadata = verification.recorded_in(metadata)
+        checks = (
+            None if verification is None else check_feasibility(verification.decisions.values())
+        )
+        accepted = result.loop_closures if verification is None else verification.stats.accepted
+        health = run_feature_health(params, result, checks, accepted, replayed.first_size)
+        metadata = replace(metadata, feature_poor_json=health.metadata_json())
+        metric = None if verification is None else verification.metric
+        annotations = Annotations.from_decisions(
+            result.decisions,
+            replayed.frame_times,
+            params.method,
+            params.hash,
+            metadata.to_entries(),
+            None if verification is None else verification.decisions,
+            None if metric is None else metric.poses,
+            spool=True,
+        )
+        self.observer.finished("annotations", annotations)
+        return annotations, health
+
+    def write(self, annotations: Annotations, topic: str, track: PoseTrack | None) -> WriteSummary:
+        """The write stage: the visualization channels drawn, then the output written."""
+        options, source = self.options, self.log.source
+        if options.visualization and not options.sidecar:
+            drawn = visualization_of(annotations, source, topic, track)
+            annotations = replace(annotations, visualization=drawn)
+        self.observer.started("write")
+        written = write_annotated_mcap(
+            source.path,
+            self.output,
+            annotations,
+            sidecar=options.sidecar,
+            output_format=options.output_format,
+            source=source,
+            log_format=self.log.log_format,
+        )
+        self.observer.finished("write", written)
+        return written
 
 
 def release_freed_memory() -> None:
@@ -522,64 +774,6 @@ def release_freed_memory() -> None:
     the C library has no malloc_trim."""
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL("libc.so.6").malloc_trim(0)
-
-
-def _write_output(
-    source: Source,
-    output: Path,
-    annotations: Annotations,
-    topic: str,
-    options: AnnotateOptions,
-    stage: StageCallback | None,
-    track: PoseTrack | None,
-) -> WriteSummary:
-    """The write stage: the visualization channels drawn, then the output written."""
-    if options.visualization and not options.sidecar:
-        drawn = visualization_of(annotations, source, topic, track)
-        annotations = replace(annotations, visualization=drawn)
-    _announce(stage, "write")
-    return write_annotated_mcap(
-        source.path,
-        output,
-        annotations,
-        sidecar=options.sidecar,
-        output_format=options.output_format,
-        source=source,
-    )
-
-
-def _replay_log(
-    source: Source,
-    log: Path,
-    params: Parameters,
-    options: AnnotateOptions,
-    callbacks: _Callbacks,
-    recovery: SalvageReport | None,
-    counts: FrameCounts,
-    recorder: _TimesRecorder,
-    features: FeatureSpill | None,
-) -> tuple[str, ReplayResult, Promise | None, int]:
-    """The camera topic, the replay of its frames, what the log promised and its unattributed
-    messages."""
-    progress, expected, stage = callbacks
-    topic = pick_image_topic(source, options.topic)
-    if recovery is not None and recovery.lost_by_topic.get(topic):
-        lost = recovery.lost_by_topic[topic]
-        counts.messages += lost
-        counts.skip(SKIP_CORRUPT_CHUNK, f"{lost} messages of {topic} in corrupt chunks", lost)
-    promise = promised(source, log, topic, options, recovery is not None)
-    unattributed = source.unattributed_messages()
-    if expected is not None:
-        expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
-    messages = source.image_messages(topic, options.start_ns, options.end_ns)
-    decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
-    frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
-    try:
-        result = _detect(params, recorder(frames), options.workers, progress, stage, features)
-    except (ImageDecodeError, TimestampError) as exc:  # on_error="fail": name the log
-        exc.args = (f"{log}: {exc}", *exc.args[1:])
-        raise
-    return topic, result, promise, unattributed
 
 
 def _annotate(
@@ -594,101 +788,7 @@ def _annotate(
     """annotate_log on `read_path`: the log itself, or the copy that --recover made of it,
     opened once for the whole run: every stage reads through the one Source."""
     digest = _hash_in_background(log)
-    with open_source(read_path) as source:
-        return _run(source, log, output, params, options, callbacks, recovery, digest)
-
-
-def _run(
-    source: Source,
-    log: Path,
-    output: Path,
-    params: Parameters,
-    options: AnnotateOptions,
-    callbacks: _Callbacks,
-    recovery: SalvageReport | None,
-    digest: Future[str],
-) -> AnnotateResult:
-    """The stages of a run over its open log: replay, verify, metric, write."""
-    stage = callbacks[2]
-    counts = FrameCounts()
-    recorder = _TimesRecorder()
-    # verification's features, extracted as the replay decodes the frames
-    with feature_spill_for(options.verification, params) as features:
-        topic, result, promise, unattributed = _replay_log(
-            source, log, params, options, callbacks, recovery, counts, recorder, features
-        )
-        release_freed_memory()
-        count_missing(counts, promise, log, topic)
-        refuse_no_frame(counts, recovery, log, topic, _window(options))
-        frame_times = recorder.frame_times()
-        odometry = Odometry(None)
-        if options.verification is not None:
-            _announce(stage, "verify")
-            odometry = read_odometry(
-                source, frame_times, options.time_source, options.odometry_topic
-            )
-        verification = verify_decisions(
-            source,
-            topic,
-            result,
-            frame_times,
-            options,
-            features,
-            odometry.frames,
-            recorder.first_shape,
-        )
-    if verification is not None:
-        _announce(stage, "metric")
-        verification.metric = metric_edges(
-            source,
-            topic,
-            frame_times,
-            verification.decisions,
-            verification.metric_intrinsics,
-            verification.params,
-            time_source=options.time_source,
-            odometry_topic=options.odometry_topic,
-            max_pixels=options.max_pixels,
-            workers=options.workers,
-            odometry=odometry,
-            no_intrinsics=verification.no_intrinsics_reason,
-        )
-    sha256 = waiting.result(digest)
-    metadata = run_metadata(
-        params, result, counts, log, sha256, topic, options, recovery, promise, unattributed
-    )
-    if verification is not None:
-        metadata = verification.recorded_in(metadata)
-    checks = None if verification is None else check_feasibility(verification.decisions.values())
-    accepted = result.loop_closures if verification is None else verification.stats.accepted
-    health = run_feature_health(params, result, checks, accepted, recorder.first_size)
-    metadata = replace(metadata, feature_poor_json=health.metadata_json())
-    annotations = Annotations.from_decisions(
-        result.decisions,
-        frame_times,
-        params.method,
-        params.hash,
-        metadata.to_entries(),
-        None if verification is None else verification.decisions,
-        None if verification is None or verification.metric is None else verification.metric.poses,
-        spool=True,
-    )
-    track = None if odometry.frames is None else odometry.frames.track
-    try:
-        written = _write_output(source, output, annotations, topic, options, stage, track)
-    finally:
-        annotations.close()
-    return AnnotateResult(
-        log,
-        output,
-        topic,
-        result,
-        counts,
-        written,
-        sha256,
-        recovery,
-        promise,
-        unattributed,
-        verification,
-        health,
-    )
+    log_format = format_of(read_path)
+    with log_format.open(read_path) as source:
+        run = _Run(OpenLog(source, log_format, log, recovery), output, params, options, callbacks)
+        return run.annotate(digest)

@@ -29,8 +29,10 @@ from rosbags.typesys import Stores, get_typestore
 from ..annotations.records import time_dict
 from ..annotations.schema_files import read_schema
 from ..errors import SourceError
+from ..sources.formats import plan_copy
+from ..sources.mcap_copy import input_records
 from .atomic import atomic_output
-from .mcap_writer import LIBRARY, detect_input, input_records, refuse_same_file
+from .mcap_writer import LIBRARY, refuse_same_file
 from .output_format import COMPRESSIONS, OutputFormat
 
 F64 = npt.NDArray[np.float64]
@@ -272,7 +274,7 @@ def write_with_poses(
     cannot be written or would overwrite the input.
     """
     source, output = Path(input_path), Path(output_path)
-    log = detect_input(source)
+    log = plan_copy(source)
     if log.kind != "mcap":
         raise SourceError(f"{source}: not an MCAP file (an annotated log is one)")
     refuse_same_file(source, output)

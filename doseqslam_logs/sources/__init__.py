@@ -1,31 +1,26 @@
 """Opening a log, and choosing its camera topic.
 
 The reader is chosen by what the path is (a directory, or the file's magic bytes), not by its
-name alone. `FORMATS` lists (probe, constructor) pairs, first match wins: supporting a new format
-is one new module plus one entry.
+name alone: `formats.FORMATS` knows each format, its reader, its copier and its file names.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import stat
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 from doseqslam_logs.errors import NoCameraError, SourceError
 from doseqslam_logs.sources.base import (
     MCAP_MAGIC,
-    ROS1_MAGIC,
-    SQLITE_MAGIC,
     ChannelInfo,
     DecodedMessage,
     ImageMessage,
     Source,
 )
+from doseqslam_logs.sources.formats import FORMATS, format_of, read_head, refuse_stream
 from doseqslam_logs.sources.images import IMAGE_TYPES, decode_gray
-from doseqslam_logs.sources.mcap_source import McapSource
-from doseqslam_logs.sources.rosbags_source import RosbagsSource
 
 __all__ = [
     "FORMATS",
@@ -34,71 +29,17 @@ __all__ = [
     "ImageMessage",
     "Source",
     "decode_gray",
+    "format_of",
     "image_channels",
     "is_mcap_file",
     "open_source",
     "opened",
     "pick_image_topic",
+    "refuse_stream",
 ]
 
 # What a reading helper takes: the run's open log, or a path it opens for itself.
 Log = Source | str | os.PathLike[str]
-
-
-# A probe sees the path and the first 16 bytes of the file (empty for a directory).
-Probe = Callable[[Path, bytes], bool]
-
-
-def _is_directory(path: Path, head: bytes) -> bool:
-    return path.is_dir()  # a rosbag2 bag; RosbagsSource says so if metadata.yaml is missing
-
-
-def _is_mcap(path: Path, head: bytes) -> bool:
-    return head.startswith(MCAP_MAGIC)
-
-
-def _is_ros1_bag(path: Path, head: bytes) -> bool:
-    return head.startswith(ROS1_MAGIC)
-
-
-def _is_rosbag2_sqlite(path: Path, head: bytes) -> bool:
-    # rosbags picks its sqlite3 reader by the .db3 suffix, so other sqlite files cannot be read.
-    return path.suffix == ".db3" and head.startswith(SQLITE_MAGIC)
-
-
-FORMATS: list[tuple[Probe, Callable[[Path], Source]]] = [
-    (_is_directory, RosbagsSource),
-    (_is_mcap, McapSource),
-    (_is_ros1_bag, RosbagsSource),
-    (_is_rosbag2_sqlite, RosbagsSource),
-]
-
-
-def refuse_stream(path: Path) -> None:
-    """Raises SourceError when `path` is a pipe, socket or device: logs are read by seeking
-    (an index, a second reader), and opening a FIFO with no writer would block for ever."""
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return  # missing or unreadable: the caller says which
-    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
-        return
-    kinds = {stat.S_IFIFO: "a pipe (FIFO)", stat.S_IFSOCK: "a socket", stat.S_IFCHR: "a device"}
-    kind = kinds.get(stat.S_IFMT(mode), "a device")
-    raise SourceError(
-        f"{path}: the log is {kind}, not a file: logs are read by seeking; save it to a file"
-    )
-
-
-def _head(path: Path) -> bytes:
-    refuse_stream(path)
-    if path.is_dir():
-        return b""
-    try:
-        with path.open("rb") as file:
-            return file.read(16)
-    except OSError as exc:
-        raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from exc
 
 
 def is_mcap_file(path: str | Path) -> bool:
@@ -106,31 +47,20 @@ def is_mcap_file(path: str | Path) -> bool:
     `open_source` says what is wrong with it)."""
     path = Path(path)
     try:
-        return path.is_file() and _head(path).startswith(MCAP_MAGIC)
+        return path.is_file() and read_head(path).startswith(MCAP_MAGIC)
     except SourceError:
         return False
 
 
 def open_source(path: str | Path) -> Source:
-    """Open a log read-only with the reader its content calls for.
+    """Open a log read-only with the reader its content calls for (`formats.FORMATS`).
 
     Raises:
-        SourceError: the path is missing or unreadable, is not a log file (MCAP, ROS 1 bag,
-            rosbag2 .db3 or rosbag2 directory), or the reader cannot open it.
+        SourceError: the path is missing or unreadable, is not a log file of a known format
+            (MCAP, ROS 1 bag, rosbag2 .db3 or rosbag2 directory), or the reader cannot open it.
     """
     path = Path(path)
-    if not path.exists():
-        raise SourceError(f"{path}: no such file or directory")
-    head = _head(path)
-    if not head and path.is_file():
-        raise SourceError(f"{path}: not a log file: it is empty (0 bytes)")
-    for probe, open_format in FORMATS:
-        if probe(path, head):
-            return open_format(path)
-    raise SourceError(
-        f"{path}: not a log file (not MCAP, ROS 1 .bag, rosbag2 .db3 or rosbag2 directory; "
-        f"it starts with {head!r})"
-    )
+    return format_of(path).open(path)
 
 
 @contextlib.contextmanager
