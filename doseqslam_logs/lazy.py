@@ -2,8 +2,8 @@
 
 Importing any submodule runs its package's `__init__.py` first: one that imported the
 detectors (OpenCV) or the geometric checks (OpenCV, SciPy) eagerly would make
-`import doseqslam_logs.detector.params` cost a second, and so every command's `--help`
-(issue #40). The package lists the names under `TYPE_CHECKING` for the type checker and sets
+`import doseqslam_logs.detector.params` cost a second, and so every command's `--help`. The
+package lists the names under `TYPE_CHECKING` for the type checker and sets
 `__getattr__ = lazy_names(__name__, {submodule: names})`.
 """
 

@@ -22,7 +22,7 @@ from .progress import Progress
 from .times import time_argument
 
 # The pipeline (OpenCV, SciPy, faiss) is imported when a run starts: parsing the arguments,
-# --help and a usage error do not pay for it (issue #40).
+# --help and a usage error do not pay for it.
 if TYPE_CHECKING:
     from ..pipeline.annotate import AnnotateOptions, AnnotateResult
 

@@ -69,7 +69,7 @@ def _check_outdir(outdir: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    # Here, not above: the runner imports the pipeline (OpenCV, SciPy; issue #40).
+    # Here, not above: the runner imports the pipeline (OpenCV, SciPy), which --help need not.
     from ..batch.report import ConsoleDisplay, summary_table
     from ..batch.runner import plan_batch, run_batch
 

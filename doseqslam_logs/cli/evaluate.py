@@ -109,7 +109,8 @@ def _check_images_args(args: argparse.Namespace) -> None:
 
 
 def _run_images(args: argparse.Namespace) -> int:
-    # Here, not above: the folder's run and ground truth import OpenCV and SciPy (issue #40).
+    # Here, not above: the folder's run and ground truth import OpenCV and SciPy, which --help
+    # need not.
     from ..evaluation.folder_run import evaluate_folder
     from ..evaluation.groundtruth import load_ground_truth
 

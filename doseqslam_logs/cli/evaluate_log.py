@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from ..errors import UsageError
 
-# The log's evaluation (ground truth: OpenCV, SciPy) is imported when it runs (issue #40).
+# The log's evaluation (ground truth: OpenCV, SciPy) is imported when it runs, not for --help.
 if TYPE_CHECKING:
     from ..evaluation.log_run import LogEvaluationOptions
 

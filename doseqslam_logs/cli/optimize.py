@@ -70,7 +70,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..export.optimize import optimize_log  # the pose graph: SciPy (issue #40)
+    from ..export.optimize import optimize_log  # the pose graph: SciPy, not for --help
 
     options = pose_graph_options(args)
     optimize_options = OptimizeOptions(

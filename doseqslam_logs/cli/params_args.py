@@ -120,7 +120,7 @@ def intrinsics_from_args(args: argparse.Namespace) -> Intrinsics | None:
     """--intrinsics fx,fy,cx,cy, or None. Raises UsageError for a malformed value."""
     if not getattr(args, "intrinsics", None):
         return None
-    from ..verification import Intrinsics  # the pair checks: OpenCV, SciPy (issue #40)
+    from ..verification import Intrinsics  # the pair checks: OpenCV, SciPy, when needed
 
     try:
         fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))

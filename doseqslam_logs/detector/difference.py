@@ -224,10 +224,9 @@ def sad_sums_uint8(
     them back by index gives the plain sums. Up to `SHORT_QUERIES` queries, the database frames
     are the rows and the queries (one group of at most `group`, in cache) the columns, `chunk`
     frames per call; longer sequences take the queries as rows and `SLICE_FRAMES`-frame slices
-    of the database as columns, so the database streams past once for all of them. Measured
-    side by side on 36,000 frames, the first layout against the second: half the CPU at 10
-    queries, 12-26 % less at 29 (the hour's mean sequence), the same at 60, more from about
-    100 (it streams the database once per group); docs/performance.md.
+    of the database as columns, so the database streams past once for all of them. The first
+    layout keeps a query group in cache and costs less CPU on short sequences, but it streams
+    the database once per group, so it loses on long ones.
     """
     if len(queries) <= SHORT_QUERIES:
         return _sums_database_rows(queries, blocks, group, chunk)

@@ -1,4 +1,4 @@
-"""Indexed place search (`Parameters.place_search = "index"`, issue #17): windows, not rows.
+"""Indexed place search (`Parameters.place_search = "index"`): windows, not rows.
 
 The paper compares each query sequence with every older frame, so a query costs O(log length)
 and, on a route driven lap after lap, the second-best trajectory is another visit of the same

@@ -23,18 +23,17 @@ from .params import Parameters
 GrayImage = npt.NDArray[np.uint8]
 
 # The order in which "auto" tries detectors: SURF when the installed OpenCV has the non-free
-# module (the paper's choice), else the free detector chosen by measurement (docs/results.md).
+# module (the paper's choice), else the free detector chosen on the tuning sets.
 AUTO_ORDER = ("surf", "sift", "orb")
 # Frames whose longer side is under this are enlarged for feature detection (`feature_image`):
 # ORB keeps a 31-pixel border and describes 31-pixel patches, so it finds almost nothing on a
-# thumbnail (docs/results.md, "Feature-poor frames"). Frames this size or larger are only shrunk.
+# thumbnail. Frames this size or larger are only shrunk.
 SMALL_FRAME_SIDE = 160
 # ORB's FAST test needs a grey-level step of 20 whatever the frame's contrast, so a dark or hazy
 # frame (a night drive) gives it nearly nothing. A feature image whose grey levels between the
 # 1st and 99th percentile span less than this, and every enlarged small frame (whose contrast
-# interpolation flattens), is stretched to 0-255 first (`feature_image`). Frames of the
-# committed samples span at least 69 levels (RTAB-Map 90, the 10 Hz hour 71), so they are left
-# as they are (docs/results.md, "Dark and small frames stretched").
+# interpolation flattens), is stretched to 0-255 first (`feature_image`). Frames with the
+# contrast of a daylight drive span more, so they are left as they are.
 LOW_CONTRAST_SPAN = 64
 # ... but a span under this is left alone: a frame of a few grey levels (a lens cap, a black
 # night) holds little picture, and a gain over 16 would mostly turn its sensor noise and JPEG
@@ -109,7 +108,7 @@ def feature_image(
 
 def grey_span(image: GrayImage) -> tuple[int, int]:
     """The grey levels at SPAN_PERCENTILES of the image (from the histogram of every other
-    pixel of every other row: integers; 0.07-0.15 ms on a 320x240 frame)."""
+    pixel of every other row: integers, and cheap enough for every feature image)."""
     sample = image[::2, ::2]
     if sample.size == 0:
         return 0, 0

@@ -4,10 +4,10 @@
 `SequenceDecision`s of the run can be rebuilt from the messages and handed to
 `metrics.evaluate`, which sweeps the precision-recall curve exactly as for an in-memory run.
 
-With geometric verification (issue #5) the log also says which pairs survived it: the
-`verified` evaluation keeps each sequence but replaces its candidates with its pairs whose
-`verification` is "accepted", at their refined match. Only sequences with f below the recorded
-threshold were verified, so the verified curve ends at that threshold.
+With geometric verification the log also says which pairs survived it: the `verified` evaluation
+keeps each sequence but replaces its candidates with its pairs whose `verification` is
+"accepted", at their refined match. Only sequences with f below the recorded threshold were
+verified, so the verified curve ends at that threshold.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from ..annotations.records import OUR_TOPIC_PREFIX
 # far apart the two cameras were, so its translation is weak and its rotation firmer.
 DEFAULT_LOOP_TRANSLATION_SIGMA_M = 3.0
 DEFAULT_LOOP_ROTATION_SIGMA_DEG = 10.0
-# "metric": a loop edge uses the metric pose recorded on its pair (issue #20), the placeholder
+# "metric": a loop edge uses the metric pose recorded on its pair, the placeholder
 # where none was recorded; "placeholder": the placeholder model for every edge.
 LoopModel = Literal["metric", "placeholder"]
 LOOP_MODELS: tuple[LoopModel, ...] = ("metric", "placeholder")

@@ -3,11 +3,11 @@
 Wheel odometry drifts by a bias, not by white noise: a wheel a little larger than the other
 turns the robot's heading a fraction of a degree a second, the same way the whole drive. The
 pose graph's odometry edges are white noise with the covariance the /odom messages state, and
-that covariance is rarely honest (the sample logs state 0.22 m and 0.1 rad a frame against a
-real 0.015 m and 0.03 degrees). With it too loose the loop edges alone shape the trajectory
-and each loop edge's error goes into it unfiltered; made tighter by hand, the bias the white
-noise cannot explain bends the trajectory between loops (docs/export.md, "How much the odometry
-edges weigh"). Calibrating both from the data solves the two at once:
+that covariance is rarely honest (drivers often write a fixed covariance many times the real
+error). With it too loose the loop edges alone shape the trajectory and each loop edge's error
+goes into it unfiltered; made tighter by hand, the bias the white noise cannot explain bends
+the trajectory between loops. Calibrating both from the data solves the two at once
+(docs/export.md, "The odometry calibrated from the loop edges"):
 
 1. For every loop edge with a measured translation (`depth_pnp`, `odometry_pnp`), the
    discrepancy between its measurement and the odometry chain between its two vertices, in
@@ -22,8 +22,8 @@ edges weigh"). Calibrating both from the data solves the two at once:
    regressors are one, and k would fit noise.
 3. The covariance scale s: with the bias removed, the median of each discrepancy's squared
    Mahalanobis norm under s * chain covariance + loop-edge covariance equals chi-square's
-   median for 6 degrees of freedom (the loop edges' covariances are calibrated against the
-   truth: docs/export.md, "honest covariances"). Bisection on log s within
+   median for 6 degrees of freedom (the loop edges' covariances are calibrated against
+   ground truth: `verification.metric_pose`). Bisection on log s within
    [`MIN_COVARIANCE_SCALE`, `MAX_COVARIANCE_SCALE`]. The median ignores wrong loop edges as
    long as they are fewer than half.
 
@@ -52,8 +52,8 @@ F64 = npt.NDArray[np.float64]
 # Fewer loop edges with a translation than this give no calibration: a median of a handful.
 MIN_LOOP_EDGES = 5
 # The scale's search range. The floor keeps the odometry from becoming rigid when even a tiny
-# odometry covariance explains the discrepancies (chosen on the calibration drives: 1e-2 to
-# 1e-5 give ATEs within 0.01 m of each other; docs/export.md).
+# odometry covariance explains the discrepancies; where it lies matters little (the bias does
+# the work).
 MIN_COVARIANCE_SCALE = 1e-4
 MAX_COVARIANCE_SCALE = 1e3
 ROUNDS = 3

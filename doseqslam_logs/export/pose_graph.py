@@ -11,10 +11,10 @@ docs/export.md describes the measurement model; in short:
   the messages carry no covariance, an all-zero one, or one that is not positive definite.
 * Loop edges, query vertex -> matched vertex (the refined match when verification recorded
   one). With `loop_model` "metric" (the default) and a metric pose recorded on the pair
-  (`metric_method`, issue #20): that pose, inverted (the match camera in the query camera's
-  frame) and turned from optical into body axes, with the inverse of its covariance turned
-  the same way (`metric_loop_edge`); a "rotation_only" pose gives zero information on the
-  translation axes (a rotation-only factor). Otherwise, and always with "placeholder":
+  (`metric_method`): that pose, inverted (the match camera in the query camera's frame) and
+  turned from optical into body axes, with the inverse of its covariance turned the same way
+  (`metric_loop_edge`); a "rotation_only" pose gives zero information on the translation axes (a
+  rotation-only factor). Otherwise, and always with "placeholder":
   identity relative pose, translation sigma `loop_translation_sigma_m` on each axis
   (low information: the two cameras saw the same place, from an unknown distance), rotation
   sigma `loop_rotation_sigma_deg`. A placeholder for a geometric measurement. When

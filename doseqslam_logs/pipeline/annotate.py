@@ -769,9 +769,8 @@ class _Run:
 
 def release_freed_memory() -> None:
     """Hand the heap pages freed so far back to the system: glibc keeps them resident
-    otherwise, so the later stages' peak would stand on the replay's (the detector freed at
-    30 minutes of the 10 Hz hour: resident memory 271 -> 287 MB, not down). A no-op where
-    the C library has no malloc_trim."""
+    otherwise, so the later stages' peak would stand on the replay's (freeing the detector
+    alone does not lower resident memory). A no-op where the C library has no malloc_trim."""
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL("libc.so.6").malloc_trim(0)
 

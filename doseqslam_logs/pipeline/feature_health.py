@@ -7,12 +7,9 @@ few matches"). Such a run ends with 0 loop closures like a run on a route that n
 back. `FeatureHealth` measures it per run and words a warning for the summary line, `--json`,
 the metadata, `evaluate` and `batch`, so that "could not check" never reads as "found nothing".
 
-Thresholds (docs/results.md, "Feature-poor frames"): at full size the committed sample logs
-and the RTAB-Map frames have 1 to 6 % of their frames under the segmentation's need and 2 to
-18 % of their checks impossible ("too few features"); their 128x64 and 64x32 grey versions
-have 84 to 100 % of their frames under it (ORB finds 0 to 2 features a frame there) and,
-where they have candidates at all, 100 % of their checks impossible. A run is called feature-poor
-from half of its frames or half of its checks on, far from both sides.
+Thresholds: healthy frames leave a few of a run's frames under the segmentation's need and a
+few of its checks impossible ("too few features"); thumbnails leave nearly all of them. A run is
+called feature-poor from half of its frames or half of its checks on, far from both sides.
 """
 
 from __future__ import annotations
@@ -28,7 +25,8 @@ from ..detector import Parameters
 from ..verification.stage import SKIPPED_REASONS, VerifiedDecision
 from .replay import ReplayResult
 
-# Shares from which a run is called feature-poor: far from both sides measured (docstring).
+# Shares from which a run is called feature-poor: far from healthy and from thumbnail runs
+# alike (module docstring).
 POOR_FRAME_SHARE = 0.5
 IMPOSSIBLE_CHECK_SHARE = 0.5
 # The verdict reasons of a check whose robust fit was never attempted.
@@ -86,8 +84,8 @@ class CheckFeasibility:
 
     Only "too few features" (a frame of the pair has fewer than the fit needs) says the
     frames were too poor; "too few matches" is also what a wrong candidate gives on healthy
-    frames (9 to 45 % of the checks of the committed samples and RTAB-Map), so it is counted
-    and reported but does not make a run feature-poor.
+    frames (often a large share of their checks), so it is counted and reported but does not
+    make a run feature-poor.
     """
 
     checked: int  # candidates checked (not skipped at a high frame rate)

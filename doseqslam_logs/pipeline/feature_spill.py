@@ -1,17 +1,16 @@
 """The verification's features of every frame, extracted during the replay and kept on disk.
 
-The replay decodes every frame once; without this, verification decodes the frames it checks
-a second time (re-reading and decompressing their chunks) and extracts their features again,
-often more than once when its bounded cache has let them go: on the 10 Hz hour, 78,000 frame
-loads for 36,000 frames (the hour 4.5 % faster without them: docs/performance.md). So the replay's
-prepare threads also run `extract_features` on the decoded frame, and the detector's thread
-appends the result here in frame order; verification then reads each frame's features back
-with one os.pread (the page cache usually answers), identical to what it would have extracted.
+The replay decodes every frame once; without this, verification decodes the frames it checks a
+second time (re-reading and decompressing their chunks) and extracts their features again, often
+more than once when its bounded cache has let them go (on a long log, about two loads a frame).
+So the replay's prepare threads also run `extract_features` on the decoded frame, and the
+detector's thread appends the result here in frame order; verification then reads each frame's
+features back with one os.pread (the page cache usually answers), identical to what it would
+have extracted.
 
-On disk a frame takes 8 + N * (8 + D) bytes (N features of D descriptor bytes: ~17 kB for the
-hour's 434 ORB features on average, 40 kB at most with 1000), in an unlinked temporary file
-(TMPDIR) that disappears when the spill is closed or the process ends. In memory: one 8-byte
-offset per frame.
+On disk a frame takes 8 + N * (8 + D) bytes (N features of D descriptor bytes: 40 kB at most
+with 1000 ORB features), in an unlinked temporary file (TMPDIR) that disappears when the spill
+is closed or the process ends. In memory: one 8-byte offset per frame.
 """
 
 from __future__ import annotations

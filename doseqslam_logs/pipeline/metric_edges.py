@@ -1,4 +1,4 @@
-"""The metric stage of a run (issue #20): a metric relative pose for each accepted pair.
+"""The metric stage of a run: a metric relative pose for each accepted pair.
 
 After verification, each accepted pair (query, refined match) gets the best rung of
 `verification.metric_pose` the log allows: the match's aligned depth image when the log has a
@@ -10,20 +10,19 @@ failed, why, go on the pair's LoopClosure message (`annotations.writer`).
 Odometry poses are body poses of the camera (x forward, y left, z up) turned into optical
 axes with `OPTICAL_TO_BODY`: the camera is assumed to look along the body's x axis at the
 pose's origin (no tf is read). Neighbours of a match are chosen as `tools/metric_edges.py`
-measured them: on each side, the nearest frame whose odometry is at least 1 m, and 2 m, away,
+found best: on each side, the nearest frame whose odometry is at least 1 m, and 2 m, away,
 within NEIGHBOUR_REACH_S of the match. A pair left with the rotation only also gets the query's
 neighbours, chosen the same way, for that rotation's consensus (read only for those pairs).
 
 Features of the fit: SIFT on frames shrunk to the verification's working size
-(`image_max_side`): the run's ORB missed the accuracy target (median 0.22 m against 0.10 m
-with SIFT, docs/export.md). A fit costs ~0.45 s at 640x480 (SIFT on up to six frames: query,
-match, neighbours), so at high frame rates (the pairs of a sequence with more than one frame
-per the verification's `query_interval_s`, as its query stride) at most one pair per
-`METRIC_INTERVAL_S` of query time gets a metric fit: near-copy pairs add edges, not
-information, to a pose graph, and the stage then costs about 15 % of the run on a 10 Hz
-640x480 drive (docs/export.md). The others record no metric pose and say why (their
-essential-fit rotation stays on the message, as for every accepted pair). At 2 Hz every
-accepted pair is fitted.
+(`image_max_side`): the run's ORB features miss the accuracy a loop edge needs, SIFT's meet
+it. A fit is costly (SIFT on up to six frames: query, match, neighbours), so at high frame
+rates (the pairs of a sequence with more than one frame per the verification's
+`query_interval_s`, as its query stride) at most one pair per `METRIC_INTERVAL_S` of query
+time gets a metric fit: near-copy pairs add edges, not information, to a pose graph, and a
+pose graph needs a loop edge every few tens of metres. The others record no metric pose and
+say why (their essential-fit rotation stays on the message, as for every accepted pair). At
+2 Hz every accepted pair is fitted.
 
 Memory is bounded whatever the log's length: the depth topic is read once, each image used
 and dropped as it arrives (`stream_depth`); frames are re-read through `LogFrameReader` and
@@ -82,8 +81,8 @@ METRIC_INTERVAL_S: Final = 20.0
 # odometry, within this much time of the match (tools/metric_edges.py: 8 frames at 2 Hz).
 NEIGHBOUR_BASELINES_M: Final = (1.0, 2.0)
 NEIGHBOUR_REACH_S: Final = 4.0
-# The odometry's error per metre of baseline (metres, degrees), on every axis: measured on the
-# samples' and drifting drives' odometry (docs/export.md, "Metric loop edges").
+# The odometry's error per metre of baseline (metres, degrees), on every axis: what the
+# samples' and drifting drives' odometry showed against their ground truth.
 ODOMETRY_SIGMA_PER_M: Final = (0.03, 0.15)
 FEATURE_CACHE_BYTES: Final = 64 * 2**20
 

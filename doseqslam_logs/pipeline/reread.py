@@ -6,11 +6,11 @@ image message's log time and header stamp (recorded in `FrameTimes` on the first
 neighbouring frames are read in one ranged read, which an indexed MCAP or a bag answers by
 seeking to the chunks that hold them.
 
-Each ranged read costs a seek and the decompression of whole chunks, whatever few frames it
-is for, and the stage asks for a few frames at a time (a 10 Hz hour: ~3 frames per checked
-candidate, 7.6 ms per frame when each was its own read). So a read takes `READ_AROUND`
-frames on each side too and keeps their still-encoded messages in a cache bounded in bytes:
-the next requests, for nearby frames, are answered from it and only decoded.
+Each ranged read costs a seek and the decompression of whole chunks, whatever few frames it is
+for, and the stage asks for a few frames at a time (about three per checked candidate). So a
+read takes `READ_AROUND` frames on each side too and keeps their still-encoded messages in a
+cache bounded in bytes: the next requests, for nearby frames, are answered from it and only
+decoded.
 """
 
 from __future__ import annotations

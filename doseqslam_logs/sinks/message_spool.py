@@ -1,10 +1,10 @@
 """Our output messages kept in an unlinked temporary file until they are written.
 
 A loop closure message is a record of about 35 fields (frame references, the relative pose, the
-metric pose): about 2.4 KB of Python objects, and with verification every pair of an accepted
-sequence has one, checked or not: 5,568 for the first 10 minutes (6,000 frames) of the 10 Hz
-hour, 14 MB (docs/performance.md). The writer needs them all before it starts, to interleave
-them with the input by log time, so held as objects they would grow with the log.
+metric pose): a few KB of Python objects, and with verification every pair of an accepted
+sequence has one, checked or not: thousands in a few minutes of a 10 Hz drive. The writer needs
+them all before it starts, to interleave them with the input by log time, so held as objects
+they would grow with the log.
 `SpooledMessages` pickles each message into the file as it comes and keeps in memory only its
 sort key and place in the file (32 B); the writer reads them back one at a time, in order.
 

@@ -66,8 +66,8 @@ def _zstd_at_most(data: bytes, limit: int) -> bytes:
 
     try:
         # A frame whose header states a size within the limit is decompressed in one call
-        # into exactly that size (zstd fails a frame that holds more): 2.5 times faster than
-        # the stream for a 1 MB chunk, which matters to the verification stage's re-reads.
+        # into exactly that size (zstd fails a frame that holds more): much faster than the
+        # stream, which matters to the verification stage's re-reads.
         if 0 <= zstandard.frame_content_size(data) < limit:
             whole: bytes = zstandard.decompress(data, max_output_size=limit)
             return whole

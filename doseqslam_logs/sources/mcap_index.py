@@ -2,9 +2,9 @@
 
 mcap's SeekingReader parses every record of every chunk it opens, in Python. The verification
 stage re-reads a few frames at a time, from chunks that also hold the log's other topics, and
-that parsing was a quarter of its time on the 10 Hz hour (cProfile), holding the GIL. Each
-chunk's message index lists the offsets of one channel's messages in it: this reader
-decompresses the chunk and slices out only those. It yields the same messages in the same
+that parsing, holding the GIL, is a large share of the stage's time. Each chunk's message index
+lists the offsets of one channel's messages in it: this reader decompresses the chunk and slices
+out only those. It yields the same messages in the same
 order as `SeekingReader.iter_messages(topics=[topic], log_time_order=True)` (tested), through
 mcap's own log-time queue.
 """

@@ -606,11 +606,11 @@ class McapSource:
             if by_index is not None:
                 return by_index
             seeking = self._reader(file)
-            # SeekingReader re-parses the summary section on its first call, 43 ms for the chunk
-            # and message indexes of an 834 MB hour: once per ranged read of the verification
-            # stage, more than the frames themselves. The summary was read and checked when
-            # the file was opened; hand it over (mcap's reader caches it in `_summary`; should
-            # that attribute go, it reads it again, correctly, just slower).
+            # SeekingReader re-parses the summary section on its first call (tens of ms for the
+            # chunk and message indexes of an hour-long log): once per ranged read of the
+            # verification stage, more than the frames themselves. The summary was read and
+            # checked when the file was opened; hand it over (mcap's reader caches it in
+            # `_summary`; should that attribute go, it reads it again, correctly, just slower).
             if getattr(seeking, "_summary", False) is None:
                 seeking._summary = self._summary
             return _iter_topic(seeking, topic, start_ns, end_ns, ordered=True)

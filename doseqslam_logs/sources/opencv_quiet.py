@@ -8,7 +8,7 @@ words (the libjpeg and libpng messages images.py captures are not OpenCV's log).
 
 The decoders import OpenCV from here, in the functions that decode (`from
 doseqslam_logs.sources.opencv_quiet import cv2`): reading a log's channels and messages, and
-every command that only does that, does not pay OpenCV's import (issue #40).
+every command that only does that, does not pay OpenCV's import.
 """
 
 from __future__ import annotations

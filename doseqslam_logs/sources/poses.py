@@ -264,8 +264,8 @@ def _components(value: Any, axes: str) -> list[float]:
 
 class _Columns:
     """Pose messages as flat arrays, filled as they are read (8 bytes a value): kept as one
-    Python object each, with lists of floats, the 144,000 Odometry messages of a 4-hour log
-    took a process from 48 to 428 MB (docs/performance.md)."""
+    Python object each, with lists of floats, the Odometry messages of a log of a few hours
+    would take hundreds of MB."""
 
     def __init__(self, path: Path, topic: str, with_covariance: bool) -> None:
         self.path, self.topic = path, topic  # for errors

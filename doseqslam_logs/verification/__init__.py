@@ -1,4 +1,4 @@
-"""Geometric verification of loop-closure pairs (issue #5): pure computation, no file I/O.
+"""Geometric verification of loop-closure pairs: pure computation, no file I/O.
 
 After the detector, each (query, match) pair is checked with local features, a ratio test and
 a robust fundamental-matrix fit (essential matrix and relative pose when intrinsics are known;

@@ -353,7 +353,8 @@ def bracketed_match(
     if not other[1].accepted and nearer[1].accepted:
         # The place lies between a frame turned past max_rotation_deg and one that is not: the
         # heading changes fast there, and the one estimate under the limit is not to be
-        # trusted alone (128x64 frames: a pair 23.5 degrees apart estimated at 10).
+        # trusted alone (on small frames a pair turned far past the limit can be estimated
+        # under it).
         return nearer[0], dataclasses.replace(nearer[1], accepted=False, reason=other[1].reason)
     # The nearer frame, with its own verdict: rejected when the camera there is turned past
     # max_rotation_deg (the place is there, but not seen from the query's heading).
@@ -368,10 +369,10 @@ def _crossing(sides: list[int], inliers: list[int]) -> int | None:
 
     The direction of t is least certain where the cameras are closest and the scene is far:
     there one frame's sign can flip, and so can the near-zero signs of the true crossing. A
-    lone flip amid one side ("- + - -", "+ + - +": the 10 Hz hour's two false pairs, 2.2 and
-    2.5 m from the crossing) splits no run well, and a crossing stays the best split with a
-    flip beside it or inside it (a figure eight's false pair 3.3 m from the crossing came from
-    smoothing such flips away first, median-of-three, and taking a later change).
+    lone flip amid one side ("- + - -", "+ + - +") splits no run well, so it brackets no false
+    pair, and a crossing stays the best split with a flip beside it or inside it. Smoothing the
+    flips away first (median-of-three) would not do: it also erases a true crossing whose
+    signs are near zero, and a later change is taken instead.
     """
     n = len(sides)
     behind_before = [0] * (n + 1)  # frames behind among the first k

@@ -1,13 +1,13 @@
 """The two nearest binary descriptors of each query descriptor, by Hamming distance.
 
-The ratio test of every checked frame pair needs them, and on the 10 Hz hour it was half of the
+The ratio test of every checked frame pair needs them, and they are a large share of the
 verification's time: OpenCV's `batchDistance` counts bits with a lookup table in its portable
-build, 1.12 ms for a pair of the hour's frames (median 463 features each); faiss's exact flat
-binary index uses the processor's popcount, 0.31 ms (docs/performance.md). Distances are exact
-integers either way, so the matches the ratio test keeps are the same, bit for bit, on any
-machine and with either: a kept match's nearest neighbour is strictly nearer than the second
-(d0 < ratio * d1), so no tie decides it, and the second distance is a value, not an index
-(tested against OpenCV's). OpenCV's is used when faiss is not installed.
+build, where faiss's exact flat binary index uses the processor's popcount, several times faster
+(docs/performance.md). Distances are exact integers either way, so the matches the ratio test
+keeps are the same, bit for bit, on any machine and with either: a kept match's nearest
+neighbour is strictly nearer than the second (d0 < ratio * d1), so no tie decides it, and the
+second distance is a value, not an index (tested against OpenCV's). OpenCV's is used when faiss
+is not installed.
 """
 
 from __future__ import annotations

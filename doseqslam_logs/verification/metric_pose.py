@@ -1,4 +1,4 @@
-"""Metric relative pose of a verified loop pair (issue #20): a ladder of fits, best first.
+"""Metric relative pose of a verified loop pair: a ladder of fits, best first.
 
 Pure computation: features, a depth image or neighbouring frames with their odometry, and the
 pair's `Verdict` in; a `MetricPose` out. The rungs, each used when the caller has what it needs:
@@ -32,13 +32,12 @@ of a pixel coordinate, sum(r^2) / (2n - 6), floored at `MetricPoseParameters.min
 (the residuals of RANSAC inliers are truncated at its threshold, so the estimate can come out
 too small on few points). Rung 2's triangulated points are noisy too: there J also holds the
 points as parameters, seen in the query, the match and their neighbour, and the covariance is
-the pose's block of the inverse (Schur complement); without that, repeated synthetic fits
-spread 3x wider than stated. A neighbour's odometry error (`OdometryNeighbour.covariance`,
-when the caller knows it) adds G cov G^T, G how the estimate follows a wrong baseline; with
-the refinement, cov is the refined baseline's posterior covariance. Not in
-it: the depth image's noise (rung 1). On the samples (docs/export.md), with SIFT features and
-the odometry's error given, the squared errors in the stated covariance's metric have the
-median a right covariance gives; with ORB features the sigmas are about 2x too small.
+the pose's block of the inverse (Schur complement), since the points' depth errors move the
+pose. A neighbour's odometry error (`OdometryNeighbour.covariance`, when the caller knows it)
+adds G cov G^T, G how the estimate follows a wrong baseline; with the refinement, cov is the
+refined baseline's posterior covariance. Not in it: the depth image's noise (rung 1). The
+model assumes Gaussian pixel noise, which SIFT keypoints fit and ORB's grid-bound keypoints do
+not: with ORB features the stated sigmas come out too small.
 """
 
 from __future__ import annotations
@@ -91,27 +90,23 @@ class MetricPoseParameters:
     # the verification's essential fit, the metric features' essential fit and homography, and
     # the essential fits of the query against the match's neighbours and of the query's
     # neighbours against the match, chained through their refined odometry; those within
-    # `rotation_agreement_deg` of the medoid are averaged. Calibration drives (seeds 5, 7, 13,
-    # 17, 3, 23, 31, 37; 67 edges): error median 1.67 -> 0.85 deg, 95th percentile 7.3 -> 5.4.
-    # False: the verdict's rotation (before issue #20's round 2).
+    # `rotation_agreement_deg` of the medoid are averaged: on few matches each estimator alone
+    # is off by degrees now and then, and they are seldom off the same way. False: the
+    # verdict's rotation alone.
     rotation_consensus: bool = True
     rotation_agreement_deg: float = 2.0
     # Floor of a rotation-only pose's rotation sigma, on every axis: an essential fit's own
-    # sigma states tenths of a degree for errors of degrees, heavy tailed. On the calibration
-    # drives the ATE after `optimize` was lowest with 12 degrees, before the consensus (4, 8,
-    # 12, 20 tried) and with it (floors by how many estimates agree, 3/1/0.5 to 12/4/2 deg,
-    # all within 1 %: sum of the eight ATEs 1.432 m at 12 against 1.446 at 3/1/0.5, whose
-    # NEES is chi-square's); docs/export.md, "Metric loop edges, round 2".
+    # sigma states tenths of a degree for errors of degrees, heavy tailed. 12 degrees: the
+    # floor with the lowest trajectory error after `optimize` on the calibration drives.
     rotation_only_min_sigma_deg: float = 12.0
     # Rung 2's covariance times this: calibrated so that the median NEES (squared error in the
     # stated covariance's metric, 6 degrees of freedom) of the odometry_pnp edges on the
-    # calibration drives (seeds 5, 7, 13, 17) is chi-square's, 5.35 (it was 7.12: sigmas 15 %
-    # too small). The tail stays heavier than chi-square's (95th percentile 21 against 12.6).
+    # calibration drives is chi-square's. The tail stays heavier than chi-square's.
     odometry_covariance_scale: float = 1.33
     # A PnP pose that disagrees with the epipolar fit is still kept when it explains strictly
     # more of the pair's matches (Sampson distance within the verification's threshold): the
-    # essential fit of a short baseline trades rotation for translation, and on our samples it
-    # was the wrong one in 5 of the 6 disagreements (docs/export.md). False: always refuse.
+    # essential fit of a short baseline trades rotation for translation, and in most
+    # disagreements on our samples it was the wrong one. False: always refuse.
     keep_better_supported: bool = True
     # Rung 2: refine each neighbour's odometry pose by the epipolar geometry of its matches
     # with the match frame, the odometry (with its covariance) as the prior (`_refined_baseline`).
@@ -822,8 +817,7 @@ def _pair_rotations(
         return found
     # Always a candidate: gating it by its support as ORB-SLAM's initialisation does (H when
     # it explains 0.8 or 1.0 times the essential fit's matches) made the consensus worse on
-    # the calibration drives (95th percentile error 5.4 -> 6.7, 7.0 deg); a biased one is
-    # outvoted or averaged with the essential fits.
+    # the calibration drives; a biased one is outvoted or averaged with the essential fits.
     if homography is not None:
         found.append(_nearest_rotation(np.linalg.inv(k) @ homography @ k))
     return found

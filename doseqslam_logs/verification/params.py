@@ -25,19 +25,18 @@ MIN_ACCEPTABLE_INLIERS = 8
 
 @dataclass(frozen=True)
 class VerificationParameters:
-    """How each loop-closure pair is checked geometrically (issue #5).
+    """How each loop-closure pair is checked geometrically.
 
-    Defaults were chosen on the RTAB-Map samples and our sample logs with
-    tools/sweep_verification.py, never on Lip6 Outdoor: ORB + MAGSAC was the fastest and, with
-    min_inliers = 30, the only setting family that kept 0 false positives on RTAB-Map under
-    every nearby change of max_features, ratio and threshold; refine_radius = 25 frames (25 s
-    at 1 Hz) is where recall stops growing. Frames are shrunk to 320 px (was 640): on a
-    640x480 log that costs a quarter of the features and pair checks, and on RTAB-Map
-    (512x384) it gave R@P100 77.3 % instead of 86.4 %, still with 0 false positives, until a
-    frame that comes out poor at 320 px (under `detail_below` features) got a second look at
-    twice the side: 86.4 % again, for 5.6 % of the hour's frames; frames of 320 px or less
-    (Lip6 Outdoor, our samples) are not shrunk, so nothing changes for them (docs/results.md).
-    Determinism needs no seed: OpenCV's RANSAC and USAC seed their own generators (tested).
+    Defaults were chosen on the tuning sets (the RTAB-Map samples and our sample logs) with
+    tools/sweep_verification.py, never on the held-out Lip6 Outdoor: ORB + MAGSAC was the
+    fastest and, with min_inliers = 30, the only setting family that kept 0 false positives
+    under every nearby change of max_features, ratio and threshold; refine_radius = 25 frames
+    (25 s at 1 Hz) is where recall stops growing. Frames are shrunk to 320 px: on a 640x480
+    log that costs a quarter of the features and pair checks, and the few frames that come out
+    poor at 320 px (under `detail_below` features) get a second look at twice the side, so
+    larger frames keep the pairs the shrinking would lose; frames of 320 px or less are not
+    shrunk. Determinism needs no seed: OpenCV's RANSAC and USAC seed their own generators
+    (tested).
 
     `ransac_threshold_px` is in pixels of the feature image (the frame shrunk so its longer
     side is at most `image_max_side`, or a frame under 160 px enlarged to it:
@@ -48,9 +47,8 @@ class VerificationParameters:
     max_features: int = 1000  # strongest features kept per frame
     image_max_side: int = 320  # frames are shrunk (small ones enlarged) to this for features
     # A frame with fewer features than this at image_max_side is detected again at twice that
-    # side (never past its own size): on RTAB-Map (512x384) the dim, plain frames are where
-    # verification failed, and a finer look finds what 320 px lost (docs/results.md, "A finer
-    # look at feature-poor frames"). 0: never.
+    # side (never past its own size): dim, plain frames are where verification fails at
+    # 320 px, and a finer look finds what the shrinking lost. 0: never.
     detail_below: int = 150
     ratio: float = 0.8  # Lowe ratio test on the two nearest descriptors
     method: RobustMethod = "magsac"  # cv2.USAC_MAGSAC, or cv2.FM_RANSAC / cv2.RANSAC
@@ -59,22 +57,22 @@ class VerificationParameters:
     max_iterations: int = 2000
     min_inliers: int = 30  # accepted when the robust fit's inliers reach this
     # ... or this many when a frame of the pair was enlarged (under 160 px: `feature_image`):
-    # a thumbnail has fewer features to agree on. Chosen on the 64x32 and 128x64 versions of
-    # RTAB-Map and the samples, daylight and dark: no false pair at 12 and above, the first at
-    # 10; 20 keeps twice that margin (docs/results.md, "Fewer inliers on enlarged frames").
+    # a thumbnail has fewer features to agree on. Chosen on thumbnails of the tuning sets,
+    # daylight and dark: the first false pair came at 10 inliers, and 20 keeps twice that margin.
     small_frame_min_inliers: int = 20
     # A pair found on a second guess (a next-best trajectory of the detector, or the previous
     # sequence's place continued) needs this many times the inliers of a first guess: each
-    # further place tried for one query is one more chance to accept a look-alike
-    # (docs/research/2026-12-03-precision.md, "Second guesses"). 1: the same bar.
+    # further place tried for one query is one more chance to accept a look-alike. 1: the
+    # same bar.
     second_guess_factor: float = 2.0
     refine_radius: int = 25  # frames: the match may move to the best frame within +-r
     # Above 1 / query_interval_s frames per second, one candidate in s = that many frames is
     # checked, windows are searched coarse to fine and accepted offsets tracked
     # (verification.stage); at 2 Hz or slower every candidate is (0: always).
     query_interval_s: float = 0.5
-    # With intrinsics (essential matrix) only, both chosen on our sample logs (docs/results.md,
-    # "Our sample logs: same place, same heading"): a pair whose relative rotation exceeds
+    # With intrinsics (essential matrix) only, both chosen on our sample logs (a pair seen from
+    # the same place with another heading, or from a few metres off, is not a revisit): a pair
+    # whose relative rotation exceeds
     # max_rotation_deg is rejected (180: no limit), and with `bracket` a refined match is kept
     # only where the query's position lies between two verified frames of the match's
     # trajectory (geometry.bracketed_match); the refined match is then the nearer of those two.
@@ -90,9 +88,9 @@ class VerificationParameters:
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
     # the features of these that ORB would keep for their budget (on each pyramid level the
-    # strongest of its quota) instead of extracting their own: about 1 ms of CPU a frame; the
-    # same false pairs on the generalization matrix, 1.5 % more true ones
-    # (docs/research/2026-12-06-shared-features.md). False: the detector extracts its own.
+    # strongest of its quota) instead of extracting their own: a frame's features are
+    # extracted once, for the same false pairs and slightly more true ones. False: the
+    # detector extracts its own.
     shared_features: bool = True
 
     def __post_init__(self) -> None:
@@ -191,45 +189,37 @@ def _accepted_types(default: object) -> tuple[type, ...]:
 DEFAULT_VERIFICATION = VerificationParameters()
 
 # The detector's th when verification is on (unless given): the check supplies the precision,
-# so the detector only needs to propose; chosen on the RTAB-Map samples and our sample logs
-# (docs/results.md, "Verified loop closures").
+# so the detector only needs to propose; chosen on the tuning sets.
 VERIFIED_THRESHOLD = 0.99
 # The detector's alternatives when verification is on (unless given): a candidate whose match
 # fails its check is tried again at the same query's match on the sequence's next-best
-# trajectory starts, best first. 3 is where the tuning sets (RTAB-Map, our sample logs) stop
-# gaining true pairs (docs/results.md, "Next-best trajectories").
+# trajectory starts, best first. 3 is where the tuning sets stop gaining true pairs.
 VERIFIED_ALTERNATIVES = 3
 # The segmentation when verification is on (unless feature_detector or feature_image_max_side
 # is given): ORB on frames shrunk to 320 px. Verified, it finds the same loop closures as the
-# paper-like SIFT at 240 px on the tuning sets (RTAB-Map, our sample logs) for half the CPU of
-# a 640x480 frame (docs/results.md, "The segmentation with verification on"); without the
-# check SIFT is kept, as its raw decisions are better.
+# paper-like SIFT at 240 px on the tuning sets for half the CPU; without the check SIFT is
+# kept, as its raw decisions are better.
 VERIFIED_SEGMENTATION: Mapping[str, Any] = {
     "feature_detector": "orb",
     "feature_image_max_side": 320,
 }
 # The place search when verification is on (unless given): the indexed one (detector/
-# place_search.py, issue #17). On the tuning sets it finds the same verified pairs as the full
-# search at 1-2 Hz (RTAB-Map 35 / 0, drive_loops 50 / 0, drive_parked 18 / 0) and, on the 10 Hz
-# hour driven lap after lap, 4,199 true pairs instead of 1,435 and a true loop closure in 73.8 %
-# of the seconds that revisit a place instead of 28.0 %; its 6 false pairs (1 for the full
-# search) are the same street 2.0-3.3 m away, the ground truth allowing 2 m
-# (docs/results.md, "The indexed place search"); since checks walk past their window
-# (verification.stage), 4,963 true pairs, 83.7 % of those seconds and 3 false pairs. Without
-# verification the paper's full search stays.
+# place_search.py). At 1-2 Hz it finds the same verified pairs as the full search; on a route
+# driven lap after lap the full search rejects a revisit whose other visits score as well
+# (gamma tends to 1), where the index scores each visit's window on its own and finds far
+# more of them. Without verification the paper's full search stays.
 VERIFIED_PLACE_SEARCH = "index"
 # With the indexed search and verification on (unless given): at most one frame per this many
 # seconds joins the place index (`Parameters.place_index_interval_s`). At 2 Hz or slower every
-# frame still does; at 10 Hz one in three: half the index's CPU on the 10 Hz hour, a third of
-# its postings, 5,158 true pairs instead of 4,941 (docs/results.md, "Keyframes in the index,
-# and the previous sequence's place first"). Not swept: the one value measured.
+# frame still does; at 10 Hz one in three: neighbouring frames are near copies, so indexing
+# one in three finds the places as well for a fraction of the index's CPU and postings. Not
+# swept.
 VERIFIED_INDEX_INTERVAL_S = 0.25
 
 
 # With verification on (unless given): the segmentation's ORB sees a frame smaller than its
-# working size enlarged to it, as verification does. On a generated 5-minute 160x120 drive: 239
-# true pairs instead of 9; on the samples 69 / 31 / 45 instead of 60 / 21 / 39, no false pair
-# (docs/results.md, "Frames smaller than the working size").
+# working size enlarged to it, as verification does: on a small frame ORB finds too few
+# features to segment by.
 VERIFIED_ENLARGE = True
 
 

@@ -19,9 +19,8 @@ When every verified frame of the window sees the match camera on one side of the
 query's place lies beyond the window on the other: the check walks that way (`_walk`), a
 stride at a time while the frames pass with a pose, up to WALK_RADII * r past the window, and
 brackets the match where the side changes. Next checks of the sequence follow that offset.
-On the first 20 minutes of the 10 Hz hour it gave 811 true pairs instead of 665, a true loop
-closure in 66.3 % of the seconds that revisit a place instead of 56.6 %, no false pair, for
-16 % fewer frame pairs checked (docs/results.md).
+The walk exists because at a high frame rate a proposed trajectory is often a few seconds off
+along the route, past the window.
 
 When a pair fails and the detector recorded next-best trajectories of the sequence
 (`SequenceDecision.alternatives`), the same query is checked against each of them in turn, at
@@ -29,9 +28,9 @@ the match that trajectory gives it, +- r: the first that passes is kept (`PairCh
 says which). A wrong trajectory is the detector's usual failure on a revisit (a similar stretch
 scores a little lower than the true one), and the check tells them apart. An alternative that
 is hopeless (under half of min_inliers) for two queries in a row is not tried again in that
-sequence, the rule of high frame rates below: on Lip6 Outdoor it checked 43 % fewer frame pairs
-for 4 fewer true pairs (278 of 282), and on the tuning sets the same figures or one pair better
-(docs/results.md). Rejected pairs are kept with their verdict.
+sequence, the rule of high frame rates below: a trajectory wrong at two queries stays wrong,
+and checking it further costs frame pairs for almost no true pair. Rejected pairs are kept
+with their verdict.
 A pair found anywhere but at the detector's own match (an alternative, or the previous
 sequence's place continued, below) is a second guess and needs `second_guess_factor` times
 the inliers (`_second_guess`): every further place tried for a query is one more chance to
@@ -39,34 +38,25 @@ pass a look-alike a few metres off.
 
 High frame rates (`query_stride` > 1: more than one frame per `query_interval_s`): neighbouring
 frames are near copies, and checking each of them against 2r + 1 frames would cost more than
-the detector (a 10 Hz hour has ~34,000 candidates). There the stage checks every s-th
-candidate of a sequence (the others are recorded as skipped, not reported), and searches the
-window coarse to fine: the match and every frame whose index is a multiple of 2s, then the
-multiples of s within 2s of the best, then the two frames s // 2 on either side of the best,
-then s // 4, ... down to 1 (at s = 5: 2, then 1), each finer step only when the best so far is
-not hopeless (under half of min_inliers). That last halving checks 4 frames where every frame
-within s of the best took 8: on the 10 Hz hour 82,893 frame pairs instead of 92,325 for 5,112
-true pairs instead of 5,119, a true loop closure in 84.0 % of the revisiting seconds instead of
-84.1 % (docs/results.md, "Fewer frame pairs, faster matching").
+the detector. There the stage checks every s-th candidate of a sequence (the others are
+recorded as skipped, not reported), and searches the window coarse to fine: the match and
+every frame whose index is a multiple of 2s, then the multiples of s within 2s of the best,
+then the two frames s // 2 on either side of the best, then s // 4, ... down to 1 (at s = 5:
+2, then 1), each finer step only when the best so far is not hopeless (under half of
+min_inliers). Near copies pass or fail together, so halving around the best finds almost
+every pair an exhaustive search of the window finds, for a fraction of its frame pairs.
 The next checked candidate of the sequence first looks at the frame at the previous one's
 offset from its match and the grid frames beside it: accepted there, it is done; rejected but
 not hopeless there (not bracketed, too few inliers, turned too far), it is rejected too, the
 tracking having found the place; hopeless there after a hopeless previous one, it is rejected;
-otherwise (hopeless after a previous one that was not) its whole window is searched. On the
-first 20 minutes of the 10 Hz hour, searching the window after a near miss took 39 % of the
-frame pairs checked (16,450 of 42,569) and turned 99 of 2,128 such checks into an accepted pair
-(of 810); on the whole hour, not searching checks 25 % fewer frame pairs (95,199 instead of
-126,934) for 5,119 true pairs instead of 5,360, a true loop closure in 84.1 % of the seconds
-that revisit a place instead of 86.6 %, and no false pair (docs/results.md, "Near misses are
-not searched again").
-Two hopeless checks in a row give a proposal up, one an alternative (a second guess: on the
-first 20 minutes of the 10 Hz hour, 7 % fewer frame pairs and the same 776 accepted ones);
-once every proposal is, the sequence's remaining candidates are skipped too (reason "sequence
-given up"). The candidates of a sequence lie on one trajectory of the
-detector, so a trajectory that is wrong at two queries stays wrong. On the first 30 minutes
-of the 10 Hz hour, giving up checked 39 % fewer pairs and accepted the same 368 pairs; the
-2s grid then checked 30 % fewer again, with the same 318 true pairs among 367 accepted
-(docs/performance.md). At s = 1 every candidate gets the exhaustive window, exactly as before.
+otherwise (hopeless after a previous one that was not) its whole window is searched. A near
+miss is not searched again because that search seldom turns it into an accepted pair and
+takes a large share of the frame pairs checked.
+Two hopeless checks in a row give a proposal up, one an alternative (a second guess); once
+every proposal is, the sequence's remaining candidates are skipped too (reason "sequence
+given up"). The candidates of a sequence lie on one trajectory of the detector, so a
+trajectory that is wrong at two queries stays wrong. At s = 1 every candidate gets the
+exhaustive window.
 At s > 1 the next-best trajectories are proposals of their own, each checked by the rules above
 (tracked, coarse to fine, given up after one hopeless check): a revisit whose true visit is an
 alternative (the indexed place search proposes the other visits of a place so) is found there,
@@ -78,9 +68,6 @@ the previous one's last accepted pair (`Hint`) and looks first where it puts the
 first query at the same speed: a tracked check there (proposal CONTINUED, -1), before the
 detector's own search. Threads verify fixed chains of CHAIN_DECISIONS decisions, each handing
 its hint to the next within the chain, so the results are the same on any number of threads.
-On the first 20 minutes of the 10 Hz hour it accepted 846 pairs instead of 812 for 41,776
-frame pairs checked instead of 42,503 (docs/results.md, "Keyframes in the index, and the
-previous sequence's place first").
 """
 
 from __future__ import annotations
@@ -117,8 +104,8 @@ FrameLoader = Callable[[Sequence[int]], Iterator[tuple[int, GrayImage]]]
 StoredFeatures = Callable[[int], FrameFeatures | None]
 
 # Shared by the verification threads. The stage's reads are local (a sequence's windows), so a
-# small cache serves them: on the 10 Hz hour, 64 MB re-read 19 % more frames than 256 MB, in
-# the same wall time, with a peak RSS of 505 MB instead of 698 (docs/performance.md).
+# small cache serves them: a larger one re-reads fewer frames but saves no wall time, and costs
+# its size in resident memory.
 DEFAULT_CACHE_BYTES = 64 * 2**20
 
 # The reasons of a candidate left unchecked at a high frame rate (verification = "skipped"):
@@ -129,8 +116,8 @@ SKIPPED_REASONS = (SKIPPED_REASON, GIVEN_UP_REASON)
 # Hopeless checks in a row after which a sequence's remaining candidates are skipped.
 GIVE_UP_AFTER = 2
 # At a high frame rate, a next-best trajectory is given up after this many: it is a second
-# guess, and on the first 20 minutes of the 10 Hz hour a second search of one whose first was
-# hopeless never turned into an accepted pair (7 % of the frame pairs; docs/results.md).
+# guess, and a second search of one whose first was hopeless costs frame pairs and, on the
+# tuning runs, never found a pair.
 GIVE_UP_ALTERNATIVE_AFTER = 1
 # A window is searched on every (COARSE_GRID * s)-th frame first, then finer (module docstring).
 COARSE_GRID = 2
@@ -326,10 +313,9 @@ class Verifier:
     def verify(self, decision: SequenceDecision, hint: Hint | None = None) -> VerifiedDecision:
         """The decision with one PairCheck per candidate when it is accepted, else none.
 
-        At stride 1 every frame of the window is checked, not only the detector's match: on
-        the RTAB-Map samples, keeping the detector's match whenever it passed (and searching
-        only for the rejected ones) checked 4x fewer pairs but let a wrong match through (1 FP,
-        R@P100 45.5 % instead of 86.4 %; docs/results.md).
+        At stride 1 every frame of the window is checked, not only the detector's match:
+        keeping the detector's match whenever it passed (and searching only for the rejected
+        ones) checks far fewer pairs but lets wrong matches through.
         """
         self.stats.decisions += 1
         if not decision.accepted:
