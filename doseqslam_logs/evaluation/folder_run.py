@@ -1,33 +1,25 @@
 """The detector on an image folder against a ground-truth matrix (`evaluate --images`).
 
-The folder is replayed at a fixed rate, the candidate pairs verified geometrically (unless
-verification is None), and both the raw and the verified decisions scored at the run's th.
+The folder, a Source stamped at a fixed rate, goes through annotate's own run (replay, then
+the candidate pairs verified geometrically unless verification is None); this module scores
+the raw and the verified decisions at the run's th.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
-from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from ..detector import Parameters, make_detector
+from ..detector import Parameters
 from ..detector.events import SequenceDecision
 from ..errors import GroundTruthError
-from ..pipeline.feature_health import (
-    ADVICE,
-    CheckFeasibility,
-    FeatureHealth,
-    check_feasibility,
-    run_feature_health,
-)
-from ..pipeline.feature_spill import FeatureSpill, feature_spill_for
-from ..pipeline.replay import ReplayResult, replay
-from ..pipeline.reread import FolderFrameReader
-from ..sources.image_folder import folder_frames, folder_time_ns, list_images
+from ..pipeline.annotate import AnnotateOptions, Decided, OpenLog, decide_log
+from ..pipeline.feature_health import ADVICE, CheckFeasibility, FeatureHealth, check_feasibility
+from ..pipeline.replay import ReplayResult
+from ..sources.image_folder import ImageFolderSource, folder_time_ns
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..verification import (
     DEFAULT_VERIFICATION,
@@ -36,14 +28,12 @@ from ..verification import (
     VerificationStats,
     command_detector_parameters,
 )
-from ..verification.stage import verify_in_threads
 from ..verification.summary import verification_summary
 from .groundtruth import GroundTruth, load_ground_truth
 from .metrics import Evaluation, evaluate, format_report, format_side_by_side
 from .verified import verified_decisions
 
-# Threads that verify the candidates (each with its own feature cache); results do not depend
-# on it.
+# Threads that prepare the frames and verify the candidates; results do not depend on it.
 VERIFY_THREADS = 2
 
 
@@ -167,9 +157,11 @@ def evaluate_folder(
 ) -> FolderEvaluation:
     """Replay the detector over the folder's images (natural file-name order, stamped at `fps`),
     verify its candidates, and score both against `gt` (one row per image), as
-    `evaluate --images` does. params=None takes the command's defaults: the verified ones with
-    verification, else the paper's. `expected(images)` is called once the folder is listed,
-    `progress(frames done)` after each frame, `stage("replay" | "verify")` as each begins.
+    `evaluate --images` does: the folder is a Source (`ImageFolderSource`) and the run is
+    annotate's (`pipeline.annotate.decide_log`), nothing written. params=None takes the
+    command's defaults: the verified ones with verification, else the paper's.
+    `expected(images)` is called once the folder is listed, `progress(frames done)` after each
+    frame, `stage("replay" | "verify")` as each begins.
 
     Raises SourceError (no images, or one that cannot be decoded), ImageDecodeError (an
     image over `max_pixels`, refused from its header), GroundTruthError (unreadable ground
@@ -179,33 +171,43 @@ def evaluate_folder(
     if params is None:
         params = command_detector_parameters(verification)
     truth = gt if isinstance(gt, GroundTruth) else load_ground_truth(gt, gt_variable)
-    files = list_images(images)
-    if len(files) != truth.n_frames:  # before the run: a wrong GT file is the usual cause
+    source = ImageFolderSource(images, fps, max_pixels)
+    if len(source.files) != truth.n_frames:  # before the run: a wrong GT file is the usual cause
         raise GroundTruthError(
             f"{truth.source}: ground truth has {truth.n_frames} frames but {images} has "
-            f"{len(files)} images"
+            f"{len(source.files)} images"
         )
-    if expected is not None:
-        expected(len(files))
-    if stage is not None:
-        stage("replay")
-    # verification's features, extracted as the replay decodes the images
-    with feature_spill_for(verification, params) as features:
-        frames = folder_frames(images, fps, max_pixels)
-        result = replay(frames, make_detector(params), progress, side=features)
-        if stage is not None and verification is not None:
-            stage("verify")
-        checked = (
-            None
-            if verification is None
-            else _verify(files, result, verification, intrinsics, max_pixels, features)
+    options = AnnotateOptions(
+        time_source="log",
+        on_error="fail",
+        workers=VERIFY_THREADS,
+        verification=verification,
+        intrinsics=intrinsics,
+        max_pixels=max_pixels,
+    )
+    announced = None if expected is None else lambda count: expected(count or 0)
+    with source:
+        decided = decide_log(
+            OpenLog(source, None, images, None), params, options, progress, announced, stage
         )
+    result = decided.replayed.result
+    checked = None if decided.verification is None else _folder_verification(decided)
     scores = _scores(result, checked, truth, params, fps, tolerance)
-    checks = None if checked is None else checked.checks
-    accepted = result.loop_closures if checked is None else checked.stats.accepted
-    health = run_feature_health(params, result, checks, accepted)
+    health = decided.feature_health(params)
     return FolderEvaluation(
         images, fps, params, result, verification=checked, health=health, **scores
+    )
+
+
+def _folder_verification(decided: Decided) -> FolderVerification:
+    """The run's verification as the report gives it: each decision reduced to its accepted
+    pairs."""
+    run = decided.verification
+    assert run is not None
+    checked = list(run.decisions.values())
+    feasible = check_feasibility(checked)
+    return FolderVerification(
+        run.params, run.intrinsics, verified_decisions(checked), run.stats, run.wall_s, feasible
     )
 
 
@@ -234,28 +236,3 @@ def _warning_lines(health: FeatureHealth | None) -> list[str]:
     if health is None or not health.poor:
         return []
     return [f"WARNING: {text}" for text in health.warnings] + [f"         {ADVICE}"]
-
-
-def _verify(
-    files: list[Path],
-    result: ReplayResult,
-    params: VerificationParameters,
-    intrinsics: Intrinsics | None,
-    max_pixels: int,
-    features: FeatureSpill | None,
-) -> FolderVerification:
-    start = time.perf_counter()
-    reader = FolderFrameReader(files, max_pixels)  # stateless: one for every thread
-    checked, stats = verify_in_threads(
-        result.decisions,
-        lambda: nullcontext(reader),
-        params,
-        intrinsics,
-        VERIFY_THREADS,
-        stored_features=None if features is None else features.get,
-    )
-    wall_s = time.perf_counter() - start
-    feasible = check_feasibility(checked)
-    return FolderVerification(
-        params, intrinsics, verified_decisions(checked), stats, wall_s, feasible
-    )

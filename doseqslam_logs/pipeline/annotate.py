@@ -122,6 +122,12 @@ class _Announcing(StageObserver):
         self.observer.finished(stage, product)
 
 
+def _observer(stage: StageCallback | None, observer: StageObserver | None) -> StageObserver:
+    """One observer for annotate_log's `stage` callback and `observer`."""
+    observer = observer or StageObserver()
+    return observer if stage is None else _Announcing(stage, observer)
+
+
 @dataclass(frozen=True)
 class AnnotateOptions:
     """Everything about a run except the detector parameters."""
@@ -493,10 +499,7 @@ def annotate_log(
     check_output_path(output)  # before the detector runs, not after
     if log.exists():
         refuse_same_file(log, output)
-    observer = observer or StageObserver()
-    if stage is not None:
-        observer = _Announcing(stage, observer)
-    callbacks = _Callbacks(progress, expected, observer)
+    callbacks = _Callbacks(progress, expected, _observer(stage, observer))
     if not (options.recover and is_mcap_file(log)):
         return _annotate(log, log, output, params, options, callbacks, None)
     with scratch_file(output) as repaired:
@@ -542,14 +545,14 @@ class _Callbacks:
 class OpenLog:
     """A run's input: the log opened once, through which every stage reads."""
 
-    source: Source  # reads `read_path`: the log, or the copy --recover made of it
-    log_format: LogFormat
+    source: Source  # reads the log, or the copy --recover made of it
+    log_format: LogFormat | None  # None: not a log file (an image folder), never written
     path: Path  # the log as given, for messages and the metadata
     recovery: SalvageReport | None  # what --recover found (None: not recovered)
 
 
 @dataclass
-class _Replayed:
+class Replayed:
     """What the replay stage leaves for the later ones."""
 
     topic: str
@@ -560,6 +563,23 @@ class _Replayed:
     frame_times: FrameTimes
     first_shape: tuple[int, int] | None
     first_size: str
+
+
+@dataclass(frozen=True)
+class Decided:
+    """What a run decided before anything is written (`decide_log`)."""
+
+    replayed: Replayed
+    verification: Verification | None  # None when it was off
+    odometry: Odometry  # the poses the motion rule used (none: it looked at the images)
+
+    def feature_health(self, params: Parameters) -> FeatureHealth:
+        """Whether the frames held enough features to segment and verify."""
+        verification, result = self.verification, self.replayed.result
+        decisions = None if verification is None else verification.decisions.values()
+        checks = None if decisions is None else check_feasibility(decisions)
+        accepted = result.loop_closures if verification is None else verification.stats.accepted
+        return run_feature_health(params, result, checks, accepted, self.replayed.first_size)
 
 
 class _Run:
@@ -577,7 +597,8 @@ class _Run:
         self.callbacks = callbacks
         self.observer = callbacks.observer
 
-    def annotate(self, digest: Future[str]) -> AnnotateResult:
+    def decide(self) -> Decided:
+        """The replay and the verification of its candidates: what the run decides."""
         options = self.options
         # verification's features, extracted as the replay decodes the frames
         with feature_spill_for(options.verification, self.params) as features:
@@ -592,6 +613,12 @@ class _Run:
                     options.odometry_topic,
                 )
             verification = self.verify(replayed, features, odometry)
+        return Decided(replayed, verification, odometry)
+
+    def annotate(self, digest: Future[str]) -> AnnotateResult:
+        """Every stage: the decisions, their metric poses, and the annotated output."""
+        decided = self.decide()
+        replayed, verification, odometry = decided.replayed, decided.verification, decided.odometry
         if verification is not None:
             self.observer.started("metric")
             verification.metric = self.metric(replayed, verification, odometry)
@@ -619,7 +646,7 @@ class _Run:
             health,
         )
 
-    def replay(self, features: FeatureSpill | None) -> _Replayed:
+    def replay(self, features: FeatureSpill | None) -> Replayed:
         """The replay stage: the camera topic's frames through the detector (which also fills
         `features`, when given)."""
         log, options = self.log, self.options
@@ -648,7 +675,7 @@ class _Run:
         count_missing(counts, promise, log.path, topic)
         refuse_no_frame(counts, recovery, log.path, topic, _window(options))
         frame_times = recorder.frame_times()
-        return _Replayed(
+        return Replayed(
             topic,
             result,
             promise,
@@ -671,7 +698,7 @@ class _Run:
             return replay(frames, detector, self.callbacks.progress, workers, features)
 
     def verify(
-        self, replayed: _Replayed, features: FeatureSpill | None, odometry: Odometry
+        self, replayed: Replayed, features: FeatureSpill | None, odometry: Odometry
     ) -> Verification | None:
         """The verification stage (None when it is off)."""
         verification = verify_decisions(
@@ -689,7 +716,7 @@ class _Run:
         return verification
 
     def metric(
-        self, replayed: _Replayed, verification: Verification, odometry: Odometry
+        self, replayed: Replayed, verification: Verification, odometry: Odometry
     ) -> MetricEdges:
         """The metric stage: the accepted pairs' metric poses."""
         options = self.options
@@ -709,7 +736,7 @@ class _Run:
         )
 
     def annotations(
-        self, replayed: _Replayed, verification: Verification | None, sha256: str
+        self, replayed: Replayed, verification: Verification | None, sha256: str
     ) -> tuple[Annotations, FeatureHealth]:
         """Our messages and metadata for the decisions (spooled: `close` when written)."""
         params, options, log, result = self.params, self.options, self.log, replayed.result
@@ -727,11 +754,7 @@ class _Run:
         )
         if verification is not None:
             metadata = verification.recorded_in(metadata)
-        checks = (
-            None if verification is None else check_feasibility(verification.decisions.values())
-        )
-        accepted = result.loop_closures if verification is None else verification.stats.accepted
-        health = run_feature_health(params, result, checks, accepted, replayed.first_size)
+        health = Decided(replayed, verification, Odometry(None)).feature_health(params)
         metadata = replace(metadata, feature_poor_json=health.metadata_json())
         metric = None if verification is None else verification.metric
         annotations = Annotations.from_decisions(
@@ -765,6 +788,24 @@ class _Run:
         )
         self.observer.finished("write", written)
         return written
+
+
+def decide_log(
+    log: OpenLog,
+    params: Parameters | None = None,
+    options: AnnotateOptions | None = None,
+    progress: Callable[[int], None] | None = None,
+    expected: Callable[[int | None], None] | None = None,
+    stage: StageCallback | None = None,
+    observer: StageObserver | None = None,
+) -> Decided:
+    """The replay and verify stages of `annotate_log` over an open log, nothing written: what
+    `evaluate --images` scores. Defaults and callbacks as annotate_log's."""
+    options = options or AnnotateOptions()
+    if params is None:
+        params = command_detector_parameters(options.verification)
+    callbacks = _Callbacks(progress, expected, _observer(stage, observer))
+    return _Run(log, Path(), params, options, callbacks).decide()
 
 
 def release_freed_memory() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 import math
 import re
 from collections.abc import Iterator
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SourceError, UsageError
+from .base import ChannelInfo, DecodedMessage, ImageMessage, Promise
 from .frame import Frame
 from .image_header import DEFAULT_MAX_PIXELS, claimed_size
 from .images import Gray, captured_stderr, check_pixel_cap
@@ -91,3 +93,78 @@ def folder_frames(
     for index, path in enumerate(list_images(folder)):
         stamp = folder_time_ns(index, fps)
         yield Frame(index, stamp, stamp, None, read_gray_file(path, max_pixels))
+
+
+FOLDER_TOPIC = "/image_folder"
+FOLDER_MESSAGE_TYPE = "image file"
+
+
+class ImageFolderSource:
+    """An image folder as a `Source`: one camera topic whose frame i is the folder's i-th image
+    in natural order, at log time i / fps seconds (no header stamp: run it on log time).
+
+    Each image is decoded as it is read (gray, its size checked from its header first) and
+    handed on as a raw mono8 message. A folder's frames are numbered by position, so an image
+    cannot be skipped: one that cannot be read or decoded raises SourceError, one over
+    `max_pixels` ImageDecodeError, and the run stops.
+    """
+
+    def __init__(self, folder: Path, fps: float, max_pixels: int = DEFAULT_MAX_PIXELS) -> None:
+        self.path = folder
+        self.fps = check_fps(fps)
+        self.max_pixels = max_pixels
+        self.files = list_images(folder)
+        self.times_ns = [folder_time_ns(index, self.fps) for index in range(len(self.files))]
+
+    def channels(self) -> list[ChannelInfo]:
+        count, last = len(self.files), self.times_ns[-1]
+        return [
+            ChannelInfo(FOLDER_TOPIC, FOLDER_MESSAGE_TYPE, "file", count, 0, last, is_image=True)
+        ]
+
+    def _indices(self, topic: str, start_ns: int | None, end_ns: int | None) -> range:
+        if topic != FOLDER_TOPIC:
+            return range(0)
+        first = 0 if start_ns is None else bisect.bisect_left(self.times_ns, start_ns)
+        last = len(self.times_ns) if end_ns is None else bisect.bisect_left(self.times_ns, end_ns)
+        return range(first, max(first, last))
+
+    def image_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[ImageMessage]:
+        for index in self._indices(topic, start_ns, end_ns):
+            gray = read_gray_file(self.files[index], self.max_pixels)
+            height, width = gray.shape
+            stamp, data = self.times_ns[index], gray.tobytes()
+            yield ImageMessage(
+                topic, stamp, None, "raw", "mono8", width, height, width, False, data
+            )
+
+    def messages(self, topic: str) -> Iterator[DecodedMessage]:
+        return iter(())  # a folder holds images only
+
+    def raw_messages(
+        self, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    ) -> Iterator[tuple[int, bytes]]:
+        for index in self._indices(topic, start_ns, end_ns):
+            path = self.files[index]
+            try:
+                data = path.read_bytes()
+            except OSError as exc:
+                raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+            yield self.times_ns[index], data
+
+    def promised_messages(self, topic: str) -> Promise | None:
+        return None
+
+    def unattributed_messages(self) -> int:
+        return 0
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> ImageFolderSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
