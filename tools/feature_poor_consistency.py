@@ -4,6 +4,7 @@ seqslam`) on the small logs, kept only when the k queries before each were repor
 a match moving along (match - d within +-SLACK frames). Prints true / false pairs per k.
 
     python tools/feature_poor_consistency.py --datasets rtabmap,samples
+    python tools/feature_poor_consistency.py --datasets none --log /tmp/s/season.ros2.mcap
 """
 
 from __future__ import annotations
@@ -56,24 +57,26 @@ def true_false(pairs: list[Pair], gt: Path) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=fpt.DATA)
-    parser.add_argument("--datasets", default="rtabmap,samples")
+    parser.add_argument("--datasets", default="rtabmap,samples", help="or none")
+    parser.add_argument("--log", type=Path, action="append", default=[], help="a generated drive")
     parser.add_argument("--sizes", default="full,128x64,64x32")
     parser.add_argument("--thresholds", default="0.75,0.9")
     args = parser.parse_args()
     print("| data | frames | th | " + " | ".join(f"k = {k}" for k in KS) + " |")
     print("|---|---|---|" + "---|" * len(KS))
-    every = fpt.sources(args.data)
+    every = {**fpt.sources(args.data), "none": []}
+    chosen = [s for key in args.datasets.split(",") for s in every[key]]
+    chosen += [fpt.generated(log) for log in args.log]
     with tempfile.TemporaryDirectory() as scratch:
         log, out = Path(scratch) / "log.mcap", Path(scratch) / "out.mcap"
-        for key in args.datasets.split(","):
-            for source in every[key]:
-                for size in args.sizes.split(","):
-                    shape = None if size == "full" else shrink_log.parse_size(size)
-                    shrink_log.write_small_log(source.frames(), log, shape)
-                    for th in map(float, args.thresholds.split(",")):
-                        pairs = seqslam_pairs(log, out, source, th)
-                        cells = [true_false(consistent(pairs, k), source.gt) for k in KS]
-                        print(f"| {source.name} | {size} | {th:g} | " + " | ".join(cells) + " |")
+        for source in chosen:
+            for size in args.sizes.split(","):
+                shape = None if size == "full" else shrink_log.parse_size(size)
+                shrink_log.write_small_log(source.frames(), log, shape)
+                for th in map(float, args.thresholds.split(",")):
+                    pairs = seqslam_pairs(log, out, source, th)
+                    cells = [true_false(consistent(pairs, k), source.gt) for k in KS]
+                    print(f"| {source.name} | {size} | {th:g} | " + " | ".join(cells) + " |")
     return 0
 
 

@@ -36,6 +36,11 @@ length), NaN where a ray hits nothing (the sky); or, with --depth-encoding 16UC1
 with 0 for nothing hit or farther than 65.535 m. The depth is the ray-cast geometry itself: no
 noise, no blur, no quantisation but the encoding's.
 
+With --season-change, the frames from the lap boundary nearest the middle of the drive on show
+the same streets in another season (snow on the ground, ledges and plinths, frosted and
+flattened facades, an overcast sky, another exposure): the poses and the ground truth are
+those of the same drive without it, and the .json names the first frame of the new season.
+
 Every output is byte-deterministic per seed and parameters (also with --jobs > 1): frame i's
 noise comes from its own generator seeded by (seed, i). See camera_log_writers for the
 containers. Run `python tools/make_sample_logs.py --samples` to regenerate sample_logs/.
@@ -366,6 +371,7 @@ class World:
     centerline: Path2D
     wall_length: float = 0.0
     n_facades: int = field(default=0)
+    ground_far: float = 0.35  # what the ground fades to in the distance (haze on asphalt)
 
 
 MIP_LEVELS: Final = 4
@@ -629,6 +635,7 @@ class Drive:
     distance_m: float
     odom_drift_m: float
     odom_heading_drift_deg: float
+    lap: F64  # laps (or out-and-back cycles) driven at each frame
 
 
 class _Leg:
@@ -726,6 +733,7 @@ class _Fine:
     x: F64
     y: F64
     yaw: F64  # unwrapped
+    lap: F64  # laps (of a closed route) or out-and-back cycles driven
 
 
 def _true_path(
@@ -753,7 +761,8 @@ def _true_path(
             turn = np.mod(yaw[after_i] - before, 2 * np.pi)
             u = (t[inside] - t0) / (t1 - t0)
             yaw[inside] = before + turn * u * u * (3 - 2 * u)
-    return _Fine(t, pos[:, 0], pos[:, 1], np.unwrap(yaw)), parked
+    lap = sigma / _Leg(path).cycle
+    return _Fine(t, pos[:, 0], pos[:, 1], np.unwrap(yaw), lap), parked
 
 
 def _odometry(fine: _Fine, rng: np.random.Generator) -> F64:
@@ -835,6 +844,7 @@ def simulate_drive(path: Path2D, spec: DriveSpec, seed: int) -> Drive:
         distance_m=distance,
         odom_drift_m=float(np.hypot(*(odom_fine[end, :2] - true_rel[:2]))),
         odom_heading_drift_deg=float(np.degrees(abs(_wrap(odom_fine[end, 2] - true_rel[2])))),
+        lap=at(fine.lap),
     )
 
 
@@ -954,7 +964,8 @@ class Renderer:
         iy = (gy * GROUND_TPM + 1e6).astype(np.int64) & mask
         fade = np.exp(-self.ground_z / 12.0)[:, None]
         tex = w.ground[iy, ix].astype(np.float32) / 255.0
-        ground = (0.35 + (tex - 0.35) * fade) * (AMBIENT + 0.5 * light[3])
+        far = w.ground_far
+        ground = (far + (tex - far) * fade) * (AMBIENT + 0.5 * light[3])
         out[self.below] = ground + (1 - fade) * 0.1
         azimuth = np.mod(yaw + self.col_angle, 2 * np.pi) / (2 * np.pi)
         sky_col = np.minimum((azimuth * SKY_COLS).astype(np.int64), SKY_COLS - 1)
@@ -1013,6 +1024,107 @@ class Renderer:
         out += self.noise[oy : oy + self.spec.height, ox : ox + self.spec.width, channel]
         quantised: U8 = np.clip(out + 0.5, 0, 255).astype(np.uint8)
         return quantised
+
+
+# -- the second season ---------------------------------------------------------------------------
+# With --season-change the drive is seen in another season from the lap boundary nearest its
+# middle on: snow and an overcast sky over the same streets. The geometry, the poses and so the
+# ground truth stay; what changes is what a feature detector sees. Brightness changes alone would
+# not do (BRIEF's pixel comparisons survive any monotonic tone curve): the facades' fine detail is
+# damped and partly covered (snow on ledges and the plinth, frost), so that across the change few
+# of a place's corners are the same corners, while its layout (walls, sky, ground, the large
+# light and dark parts of a facade) stays for a whole-image method such as SeqSLAM.
+
+WINTER_DETAIL: Final = 0.35  # share of a facade's fine detail (under ~0.3 m) that stays
+WINTER_GAIN: Final = 1.4  # exposure, times the drive's: snow light
+WINTER_GAMMA: Final = 1.3  # gamma exponent, times the drive's (a harder tone curve)
+WINTER_DIFFUSE: Final = 0.05  # overcast: hardly any sun-facing shading
+
+
+def season_start(drive: Drive) -> int:
+    """The first frame of the second season: the first frame of the lap (or out-and-back cycle)
+    that begins nearest the middle of the drive in time.
+
+    Raises:
+        ValueError: the drive completes no lap.
+    """
+    starts = np.flatnonzero(np.diff(np.floor(drive.lap)) > 0) + 1
+    if not starts.size:
+        raise ValueError("--season-change needs a drive of more than one lap")
+    t = drive.stamps_ns.astype(np.float64)
+    middle = (t[0] + t[-1]) / 2
+    return int(starts[np.argmin(np.abs(t[starts] - middle))])
+
+
+def winter_light(light: F64) -> F64:
+    """A frame's (gain, gamma, sun azimuth, diffuse) under the other season's sky."""
+    gain, gamma, sun, _ = light
+    return np.array([gain * WINTER_GAIN, gamma * WINTER_GAMMA, sun, WINTER_DIFFUSE])
+
+
+def winter_facade(tex: U8, rng: np.random.Generator) -> U8:
+    """One facade's albedo in winter: large parts brightened and flattened, fine detail damped
+    and overlaid with frost, snow on the upper side of horizontal edges, a drift on the plinth."""
+    albedo = tex.astype(np.float32) / 255.0
+    rows, cols = albedo.shape
+    coarse = cv2.GaussianBlur(albedo, (0, 0), 0.3 * TEXELS_PER_M)
+    out = 0.45 + 0.55 * coarse + WINTER_DETAIL * (albedo - coarse)
+    out += 0.08 * value_noise(rng, (rows, cols), rng.uniform(0.1, 0.3) * TEXELS_PER_M)
+    out += 0.04 * value_noise(rng, (rows, cols), 2.0)
+    # Snow along horizontal edges (sills, lintels, cornices), in patches.
+    step = np.zeros_like(albedo)
+    step[:-3] = np.abs(albedo[3:] - albedo[:-3])
+    ledge = cv2.dilate((step > 0.15).astype(np.uint8), np.ones((5, 1), np.uint8), anchor=(0, 4))
+    patchy = value_noise(rng, (rows, cols), 0.2 * TEXELS_PER_M) > -0.3
+    out = np.where((ledge > 0) & patchy, 0.93, out)
+    drift = rng.uniform(0.2, 0.7) * TEXELS_PER_M
+    edge = drift * (1 + 0.4 * value_noise(rng, (1, cols), 0.5 * TEXELS_PER_M))
+    out = np.where(np.arange(rows)[:, None] >= rows - edge, 0.9, out)
+    winter: U8 = (np.clip(out, 0.02, 0.98) * 255).astype(np.uint8)
+    return winter
+
+
+def _winter_atlas(world: World, rng: np.random.Generator) -> U8:
+    """The facade atlas with every facade in winter (mip levels rebuilt from level 0)."""
+    atlas: U8 = world.atlas.copy()
+    for f in range(world.n_facades):
+        offset, width, height = (
+            int(a[f, 0]) for a in (world.mip_offset, world.mip_width, world.mip_height)
+        )
+        level0 = world.atlas[offset : offset + width * height].reshape(height, width)
+        for level, tex in enumerate(_mip_chain(winter_facade(level0, rng))):
+            start = int(world.mip_offset[f, level])
+            atlas[start : start + tex.size] = tex.ravel()
+    return atlas
+
+
+def _snow_tile(rng: np.random.Generator) -> U8:
+    """Snow on the street: bright, faint drifts, no asphalt grain."""
+    g = np.full((GROUND_SIZE, GROUND_SIZE), 0.85, np.float32)
+    g += 0.05 * _tileable_noise(rng, 64) + 0.03 * _tileable_noise(rng, 8)
+    return (np.clip(g, 0, 1) * 255).astype(np.uint8)
+
+
+def _overcast_sky(rng: np.random.Generator) -> U8:
+    """A flat grey sky, a little darker towards the zenith, faint cloud."""
+    el = np.linspace(0, 1, SKY_ROWS, dtype=np.float32)[:, None]
+    clouds = value_noise(rng, (SKY_ROWS, SKY_COLS + 64), 48.0)[:, :SKY_COLS]
+    ramp = np.linspace(0, 1, 64, dtype=np.float32)
+    clouds[:, -64:] = clouds[:, -64:] * (1 - ramp) + clouds[:, :64] * ramp
+    sky = 0.55 - 0.1 * el + 0.03 * clouds
+    return (np.clip(sky, 0, 1) * 255).astype(np.uint8)
+
+
+def winter_world(world: World, seed: int) -> World:
+    """The same streets in the other season (its own random stream: [seed, 5])."""
+    rng = np.random.default_rng([seed, 5])
+    return replace(
+        world,
+        atlas=_winter_atlas(world, rng),
+        ground=_snow_tile(rng),
+        sky=_overcast_sky(rng),
+        ground_far=0.8,
+    )
 
 
 # -- ground truth and side files -------------------------------------------------------------------
@@ -1129,6 +1241,7 @@ class Config:
     depth_encoding: DepthEncoding = "32FC1"
     stops: int = 1  # with parked > 0: this many stops of `parked` seconds
     lighting: float = 1.0  # strength of the exposure and gamma drift
+    season_change: bool = False  # the other season from the lap boundary nearest the middle
 
     def lap(self) -> float:
         if self.lap_length is not None:
@@ -1156,7 +1269,7 @@ class Config:
         values = asdict(self)
         if not self.depth:
             del values["depth"], values["depth_encoding"]
-        for name, default in (("stops", 1), ("lighting", 1.0)):  # likewise
+        for name, default in (("stops", 1), ("lighting", 1.0), ("season_change", False)):
             if values[name] == default:
                 del values[name]
         return values
@@ -1214,13 +1327,23 @@ class _FrameMaker:
         self.renderer = Renderer(world, config.render_spec(), config.seed)
         self.drive = drive
         self.config = config
+        self.winter: Renderer | None = None
+        self.season_start = len(drive.x)
+        if config.season_change:
+            self.winter = Renderer(
+                winter_world(world, config.seed), config.render_spec(), config.seed
+            )
+            self.season_start = season_start(drive)
 
     def make(self, i: int) -> FrameData:
         d = self.drive
         pose = (float(d.x[i]), float(d.y[i]), float(d.yaw[i]))
+        renderer, light = self.renderer, d.light[i]
+        if self.winter is not None and i >= self.season_start:
+            renderer, light = self.winter, winter_light(light)
         if not self.config.depth:
-            return encode(self.renderer.render(*pose, d.light[i], i), self.config)[0], None
-        img, depth = self.renderer.render_with_depth(*pose, d.light[i], i)
+            return encode(renderer.render(*pose, light, i), self.config)[0], None
+        img, depth = renderer.render_with_depth(*pose, light, i)
         return encode(img, self.config)[0], depth_bytes(depth, self.config.depth_encoding)
 
     def block(self, start: int, stop: int) -> list[FrameData]:
@@ -1369,7 +1492,7 @@ def _info(config: Config, drive: Drive, cells: int, events: int) -> dict[str, An
             "end_s": round(t1, 3),
             "frames": [int(inside[0]), int(inside[-1])],
         }
-    return {
+    info: dict[str, Any] = {
         "config": {
             k: (list(v) if isinstance(v, tuple) else v) for k, v in config.recorded().items()
         },
@@ -1393,6 +1516,14 @@ def _info(config: Config, drive: Drive, cells: int, events: int) -> dict[str, An
         },
         "camera": {"hfov_deg": HFOV_DEG, "height_m": CAMERA_HEIGHT_M},
     }
+    if config.season_change:  # only then, so that other runs keep their bytes
+        first = season_start(drive)
+        info["season_change"] = {"first_frame": first, "start_s": _seconds(stamps, first)}
+    return info
+
+
+def _seconds(stamps: I64, frame: int) -> float:
+    return round((int(stamps[frame]) - int(stamps[0])) / 1e9, 3)
 
 
 def generate(config: Config, out: Path, jobs: int = 1, progress: bool = True) -> Result:
@@ -1401,6 +1532,8 @@ def generate(config: Config, out: Path, jobs: int = 1, progress: bool = True) ->
     out.mkdir(parents=True, exist_ok=True)
     world = build_world(config.route, config.lap(), config.seed)
     drive = simulate_drive(world.centerline, config.drive_spec(), config.seed)
+    if config.season_change:
+        season_start(drive)  # a drive of one lap fails here, before a file is written
     files, cells, events = _side_files(config, out, drive)
     camera = clw.CameraIntrinsics.from_hfov(config.width, config.height, HFOV_DEG)
     n = len(drive.x)
@@ -1491,6 +1624,7 @@ def command_line(config: Config, out: str = "sample_logs") -> str:
         (config.mcap_compression != "zstd", f"--mcap-compression {config.mcap_compression}"),
         (config.depth, "--depth"),
         (config.depth and config.depth_encoding != "32FC1", "--depth-encoding 16UC1"),
+        (config.season_change, "--season-change"),
     ]
     args += [flag for wanted, flag in optional if wanted]
     return "python tools/make_sample_logs.py " + " ".join(args)
@@ -1685,6 +1819,11 @@ def _parser() -> argparse.ArgumentParser:
         choices=DEPTH_ENCODINGS,
         help="with --depth: 32FC1 (metres, the default) or 16UC1 (millimetres)",
     )
+    p.add_argument(
+        "--season-change",
+        action="store_true",
+        help="snow and an overcast sky from the lap boundary nearest the middle on",
+    )
     p.add_argument("--jobs", type=int, default=1, help="rendering worker processes")
     return p
 
@@ -1714,6 +1853,7 @@ def _config(args: argparse.Namespace) -> Config:
         mcap_compression=args.mcap_compression,
         depth=args.depth,
         depth_encoding=args.depth_encoding or "32FC1",
+        season_change=args.season_change,
     )
 
 
