@@ -12,10 +12,12 @@ Two kinds of evidence, the first that covers the pair decides:
   Leaving the place's neighbourhood, not distance driven: a parked robot's odometry that
   jitters in place adds up distance but never leaves.
 * **The images** (no pose topic, or poses that do not cover the pair): `leave_samples` frames
-  evenly spaced strictly between the match and the query are checked against the query with
-  the same check as the pair; the camera left if at least half of them are hopeless (under
-  half of `min_inliers`: they do not see the query's place). A still camera's frames between
-  keep seeing it; one that drove away sees other places for most of the time between.
+  evenly spaced strictly between the match and the query are checked with the same check as
+  the pair, against the query and, where that is hopeless, against the match; the camera left
+  if at least half of them are hopeless against both (under half of `min_inliers`: they see
+  neither end's place). A still camera's frames between keep seeing it, though on small,
+  noisy frames not always both ends of it; one that drove away sees other places for most of
+  the time between.
 
 A pair that passes the check but not the rule is rejected with the reason STATIONARY.
 """

@@ -593,10 +593,23 @@ class Verifier:
             left = self.camera_path.left(refined, q, self.params.leave_distance_m)
         if left is None:
             self.stats.motion_by_images += 1
-            between = frames_between(refined, q, self.params.leave_samples)
-            verdicts = self._verdicts(query, between, self._features(between))
-            left = left_by_images([self._hopeless(v) for _, v in verdicts])
+            left = left_by_images(self._away(query, q, refined))
         return verdict if left else dataclasses.replace(verdict, accepted=False, reason=STATIONARY)
+
+    def _away(self, query: FrameFeatures, query_index: int, match: int) -> list[bool]:
+        """For each frame sampled between the match and the query: whether it sees neither of
+        them (hopeless against both). Against the query alone, a still camera's own frames
+        fail whenever noise and light drift take a small frame's features below the bar; a
+        frame that sees the match's place has not left it either."""
+        between = frames_between(match, query_index, self.params.leave_samples)
+        features = self._features(between)
+        from_query = dict(self._verdicts(query, between, features))
+        unseen = [m for m in between if self._hopeless(from_query[m])]
+        from_match: dict[int, Verdict] = {}
+        if unseen:
+            at_match = self._features([match])[match]
+            from_match = dict(self._verdicts(at_match, unseen, features))
+        return [m in from_match and self._hopeless(from_match[m]) for m in between]
 
     def _bracketed(
         self, window: range, seen: dict[int, Verdict], refined: int, verdict: Verdict
