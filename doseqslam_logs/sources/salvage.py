@@ -10,10 +10,11 @@ length gives, and writes what it can read into a new, complete and indexed MCAP:
   record (e.g. a huge records-length field) is dropped whole; its messages are counted by topic
   from the chunk itself when it still parses without the check, else from the message index
   records that follow it;
-* a chunk whose uncompressed size field is wrong (over the chunk cap of `chunk_limits`, or
-  smaller than its records) is read as a streaming decoder reads it, whatever the field says:
-  within the cap, its CRC checked, its records are kept whole and the chunk is counted; one
-  that really holds more than the cap is dropped and counted from its message indexes;
+* a chunk whose uncompressed size field is wrong (over the chunk cap of `chunk_limits`,
+  larger or smaller than its records) is read as a streaming decoder reads it, whatever the
+  field says, and never held past the cap: its records are kept whole when they fit the cap
+  and pass the CRC check, and the chunk is counted; one that really holds more than the cap
+  is dropped and counted from its message indexes;
 * a record whose own length is impossible (past the end of the file, or not what the summary's
   chunk index says for a chunk there) is stepped over: to the length the chunk index gives,
   else to the next offset where a well-formed chunk record starts (found by a scan);
@@ -236,8 +237,9 @@ def _decompress_prefix(chunk: Chunk) -> bytes:
 
 
 def _chunk_data(chunk: Chunk, validate_crc: bool) -> tuple[bytes, bool]:
-    """The chunk's records (`chunk_limits.stream_chunk_records`' errors) and whether its size
-    field is wrong; the plain read first, which is faster, for a chunk whose field is right."""
+    """The chunk's records and whether its size field is wrong (raises as
+    `chunk_limits.stream_chunk_records`); the plain read, faster, comes first: it reads every
+    chunk whose field is right."""
     try:
         data = chunk_limits.chunk_records(chunk, validate_crc)
     except chunk_limits.ChunkTooLargeError:  # claims over the cap, or holds more than it claims
