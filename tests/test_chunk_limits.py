@@ -1,5 +1,7 @@
 """Issue #21, the last gaps: a cap on what one MCAP chunk decompresses to, and a message record
-inside a chunk that is shorter than its header, counted.
+inside a chunk that is shorter than its header, counted. Issue #40 item 4: `--recover` reads a
+chunk whose uncompressed size field is wrong (over the cap, too large, too small) as a
+streaming decoder does, within the cap.
 
 The bombs are real: a chunk of a few kB of zstd (or lz4) that claims, and decompresses to,
 4 MiB, against a cap the tests lower to 1 MiB; nothing here allocates more than that.
@@ -11,19 +13,22 @@ import io
 import json
 import struct
 import sys
+import tracemalloc
 import zlib
 from pathlib import Path
 
 import pytest
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
-from mcap.records import Chunk
+from mcap.records import Chunk, Message
+from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, IndexType, Writer
 
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ExitCode
 from doseqslam_logs.sources import chunk_limits
 from doseqslam_logs.sources.mcap_source import McapSource
+from doseqslam_logs.sources.salvage import SalvageReport, salvage_mcap
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_bad_inputs as bad
@@ -319,8 +324,6 @@ def test_an_unindexed_whole_log_keeps_its_promise(good_log: Path, tmp_path: Path
 
 
 def test_the_recovery_line_names_the_chunks_over_the_cap() -> None:
-    from doseqslam_logs.sources.salvage import SalvageReport
-
     report = SalvageReport(file_size=100, bytes_used=100, complete=True, messages=10)
     report.corrupt_chunks = report.oversized_chunks = 1
     report.lost_by_topic[TOPIC] = 2
@@ -345,3 +348,156 @@ def test_a_zstd_frame_cut_short_gives_what_decompresses_before_the_cut() -> None
     prefix = chunk_limits.decompress_at_most("zstd", packed[: len(packed) // 2], len(raw) + 1)
     assert 0 < len(prefix) < len(raw) and raw.startswith(prefix)
     assert chunk_limits.decompress_at_most("zstd", packed, len(raw) + 1) == raw
+
+
+# --- --recover reads a chunk whose size field is wrong, as a streaming decoder does ----------
+
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "": CompressionType.NONE}
+SIZE_FIELD = 9 + 16  # a chunk record's uncompressed_size: after its header and two times
+CRC_FIELD = SIZE_FIELD + 8
+CLAIMS = ["over the cap", "too large", "too small"]
+
+
+def with_size_field(data: bytes, number: int, claim: str | int) -> tuple[bytes, Chunk]:
+    """The log with chunk `number`'s uncompressed_size field made wrong: "over the cap", "too
+    large" (twice its records, under the cap), "too small" (half) or a number; the chunk as
+    it was written."""
+    offset, chunk = chunks(data)[number]
+    real = chunk.uncompressed_size
+    wrong = {"over the cap": TEST_CAP + 1, "too large": 2 * real, "too small": real // 2}
+    lying = bytearray(data)
+    struct.pack_into("<Q", lying, offset + SIZE_FIELD, wrong.get(str(claim), claim))
+    return bytes(lying), chunk
+
+
+def messages_in(chunk: Chunk) -> int:
+    return sum(isinstance(r, Message) for r in breakup_chunk(chunk, validate_crc=True))
+
+
+def recovered(capsys: pytest.CaptureFixture[str], log: Path, out: Path) -> dict[str, object]:
+    status, stdout, err = run(
+        capsys, "annotate", log, "-o", out, "--no-verify", "--recover", "--json"
+    )
+    assert status == ExitCode.OK, err
+    summary: dict[str, object] = json.loads(stdout)
+    return summary
+
+
+@pytest.mark.parametrize("claim", CLAIMS)
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_recover_keeps_every_frame_of_a_chunk_whose_size_field_is_wrong(
+    compression: str,
+    claim: str,
+    good_log: Path,
+    tmp_path: Path,
+    decompressions: list[int],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Its records decompress to what its CRC says: all are kept, the wrong field reported. A
+    plain run refuses the chunk (its readers could not report the lie), except one that claims
+    more than it holds, which the mcap library reads too."""
+    data, chunk = with_size_field(
+        rewrite(good_log, compression=COMPRESSIONS[compression]), 1, claim
+    )
+    assert chunk.compression == compression and chunk.uncompressed_crc != 0
+    assert 0 < messages_in(chunk) < 12
+    log, out = tmp_path / "lying.mcap", tmp_path / "out.mcap"
+    log.write_bytes(data)
+    status, line, err = run(capsys, "annotate", log, "-o", out, "--no-verify", "--recover")
+    assert status == ExitCode.OK, err
+    assert "recovered: 1 chunk(s) with a wrong size field read whole; recovered 12 of 12" in line
+    summary = recovered(capsys, log, out)
+    assert summary["frames_used"] == 12 and summary["frames_skipped"] == 0
+    report = summary["recovered"]
+    assert isinstance(report, dict) and report["wrong_size_chunks"] == 1
+    assert report["corrupt_chunks"] == report["oversized_chunks"] == 0
+    assert all(limit <= TEST_CAP + 1 for limit in decompressions), decompressions
+    assert log.read_bytes() == data
+    status, _, err = run(capsys, "annotate", log, "-o", tmp_path / "plain.mcap", "--no-verify")
+    if claim == "too large":
+        assert status == ExitCode.OK
+    else:
+        assert status == ExitCode.UNREADABLE_INPUT
+        assert "annotate --recover uses every complete message" in one_error(err)
+
+
+@pytest.mark.parametrize("claim", ["over the cap", "too small"])
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_recover_drops_a_chunk_with_a_wrong_size_field_that_fails_its_crc(
+    compression: str,
+    claim: str,
+    good_log: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Its messages are counted from the chunk itself, as for any chunk failing its CRC check
+    (the log has no message index to count them)."""
+    whole = rewrite(good_log, compression=COMPRESSIONS[compression], index_types=IndexType.NONE)
+    data, chunk = with_size_field(whole, 1, claim)
+    damaged = bytearray(data)
+    offset, _ = chunks(data)[1]
+    damaged[offset + CRC_FIELD] ^= 0xFF
+    log = unindexed(tmp_path, bytes(damaged))
+    lost = messages_in(chunk)
+    summary = recovered(capsys, log, tmp_path / "out.mcap")
+    assert summary["frames_used"] == 12 - lost
+    assert summary["frames_skipped_by_reason"] == {"lost in a corrupt chunk": lost}
+    report = summary["recovered"]
+    assert isinstance(report, dict) and report["corrupt_chunks"] == 1
+    assert report["lost_by_topic"] == {TOPIC: lost} and report["uncountable_chunks"] == 0
+    assert report["oversized_chunks"] == report["wrong_size_chunks"] == 0
+
+
+def salvaged(log: Path, tmp_path: Path) -> tuple[SalvageReport, int]:
+    """salvage_mcap's report on `log`, and the peak of Python's allocations while it ran."""
+    with (tmp_path / "copy.mcap").open("wb") as target:
+        tracemalloc.start()
+        try:
+            report = salvage_mcap(log, target)
+            _, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+    return report, peak
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_recover_drops_a_chunk_that_holds_more_than_the_cap_whatever_it_claims(
+    compression: str,
+    good_log: Path,
+    tmp_path: Path,
+    decompressions: list[int],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The bomb's chunk says 1000 bytes and holds 4 x the cap: measured a block at a time, it
+    costs a few blocks more than the log without it; its padding message is counted by its
+    index."""
+    block = 64 * 1024
+    monkeypatch.setattr(chunk_limits, "_BLOCK_BYTES", block)
+    without = tmp_path / "without.mcap"
+    without.write_bytes(rewrite(good_log, compression=COMPRESSIONS[compression]))
+    whole = rewrite(good_log, bomb_after=4, compression=COMPRESSIONS[compression])
+    number = next(n for n, (_, c) in enumerate(chunks(whole)) if c.uncompressed_size > TEST_CAP)
+    data, _ = with_size_field(whole, number, 1000)
+    log = tmp_path / "bomb.mcap"
+    log.write_bytes(data)
+    report, peak = salvaged(log, tmp_path)
+    assert peak < salvaged(without, tmp_path)[1] + 4 * block
+    assert report.oversized_chunks == report.corrupt_chunks == 1
+    assert report.wrong_size_chunks == 0 and report.messages == 12
+    assert report.lost_by_topic == {"/padding": 1}
+    assert all(limit <= TEST_CAP + 1 for limit in decompressions), decompressions
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_streaming_reads_past_any_claim_up_to_the_cap(compression: str) -> None:
+    import lz4.frame
+    import zstandard
+
+    raw = bytes(range(256)) * 4096  # 1 MiB: the test cap exactly
+    pack = {"zstd": zstandard.ZstdCompressor().compress, "lz4": lz4.frame.compress}[compression]
+    crc = zlib.crc32(raw)
+    chunk = Chunk(compression, pack(raw), 0, 0, crc, uncompressed_size=1)
+    assert chunk_limits.stream_chunk_records(chunk, validate_crc=True) == raw
+    over = Chunk(compression, pack(raw + b"x"), 0, 0, 0, uncompressed_size=1)
+    with pytest.raises(chunk_limits.ChunkTooLargeError, match="holds more than the cap"):
+        chunk_limits.stream_chunk_records(over)

@@ -10,8 +10,11 @@ length gives, and writes what it can read into a new, complete and indexed MCAP:
   record (e.g. a huge records-length field) is dropped whole; its messages are counted by topic
   from the chunk itself when it still parses without the check, else from the message index
   records that follow it;
-* a chunk that claims more than the chunk cap uncompressed (`chunk_limits`) is dropped the same
-  way without being decompressed, and counted from its message indexes;
+* a chunk whose uncompressed size field is wrong (over the chunk cap of `chunk_limits`,
+  larger or smaller than its records) is read as a streaming decoder reads it, whatever the
+  field says, and never held past the cap: its records are kept whole when they fit the cap
+  and pass the CRC check, and the chunk is counted; one that really holds more than the cap
+  is dropped and counted from its message indexes;
 * a record whose own length is impossible (past the end of the file, or not what the summary's
   chunk index says for a chunk there) is stepped over: to the length the chunk index gives,
   else to the next offset where a well-formed chunk record starts (found by a scan);
@@ -80,7 +83,8 @@ class SalvageReport:
     stop_reason: str = ""  # why reading stopped before the footer ("" if it did not)
     messages: int = 0  # messages copied
     corrupt_chunks: int = 0  # chunks dropped (CRC mismatch, does not decompress, bad fields)
-    oversized_chunks: int = 0  # of corrupt_chunks: claiming more than the chunk cap
+    oversized_chunks: int = 0  # of corrupt_chunks: holding more than the chunk cap
+    wrong_size_chunks: int = 0  # chunks read whole although their size field is wrong
     lost_by_topic: Counter[str] = field(default_factory=Counter)  # their messages, by topic
     uncountable_chunks: int = 0  # dropped chunks whose messages could not even be counted
     orphan_messages: int = 0  # messages whose channel record was lost
@@ -96,6 +100,7 @@ class SalvageReport:
     def damaged(self) -> bool:
         damage = (
             self.corrupt_chunks,
+            self.wrong_size_chunks,
             self.orphan_messages,
             self.skipped_regions,
             self.repaired_lengths,
@@ -128,6 +133,8 @@ class SalvageReport:
                 f"{self.corrupt_chunks} corrupt chunk(s) dropped "
                 f"({lost} messages{unknown}){oversized}"
             )
+        if self.wrong_size_chunks:
+            parts.append(f"{self.wrong_size_chunks} chunk(s) with a wrong size field read whole")
         if self.skipped_regions:
             parts.append(
                 f"{self.skipped_regions} damaged region(s) of {self.skipped_bytes} bytes "
@@ -158,6 +165,7 @@ class SalvageReport:
             "known_from": self.known_from,
             "corrupt_chunks": self.corrupt_chunks,
             "oversized_chunks": self.oversized_chunks,
+            "wrong_size_chunks": self.wrong_size_chunks,
             "lost_by_topic": dict(sorted(self.lost_by_topic.items())),
             "uncountable_chunks": self.uncountable_chunks,
             "orphan_messages": self.orphan_messages,
@@ -226,6 +234,31 @@ def _decompress_prefix(chunk: Chunk) -> bytes:
     most what the chunk claims (and never over the chunk cap)."""
     limit = min(chunk.uncompressed_size, chunk_limits.MAX_CHUNK_BYTES)
     return chunk_limits.decompress_at_most(chunk.compression, chunk.data, limit)
+
+
+def _chunk_data(chunk: Chunk, validate_crc: bool) -> tuple[bytes, bool]:
+    """The chunk's records and whether its size field is wrong (raises as
+    `chunk_limits.stream_chunk_records`); the plain read, faster, comes first: it reads every
+    chunk whose field is right."""
+    try:
+        data = chunk_limits.chunk_records(chunk, validate_crc)
+    except chunk_limits.ChunkTooLargeError:  # claims over the cap, or holds more than it claims
+        return chunk_limits.stream_chunk_records(chunk, validate_crc), True
+    return data, len(data) != chunk.uncompressed_size
+
+
+def _records_of(data: bytes) -> list[McapRecord]:
+    """The records of a chunk's decompressed bytes, as the mcap library reads them (raises
+    for records that do not parse)."""
+    plain = Chunk(
+        compression="",
+        data=data,
+        message_end_time=0,
+        message_start_time=0,
+        uncompressed_crc=0,
+        uncompressed_size=len(data),
+    )
+    return breakup_chunk(plain)
 
 
 def _whole_records(data: bytes) -> list[McapRecord]:
@@ -403,16 +436,18 @@ class _Salvager:
         if head is None or len(head.chunk.data) != head.records_length:
             self.drop_uncounted()  # its fields do not fit inside its record
             return
-        if head.chunk.uncompressed_size > chunk_limits.MAX_CHUNK_BYTES:
-            self.report.oversized_chunks += 1
-            self.drop_uncounted()  # never decompressed: counted from its message indexes
-            return
         try:
-            records = breakup_chunk(head.chunk, validate_crc=True)
+            data, wrong_size = _chunk_data(head.chunk, validate_crc=True)
+            records = _records_of(data)
+        except chunk_limits.ChunkTooLargeError:
+            self.report.oversized_chunks += 1
+            self.drop_uncounted()  # what fits the cap is not kept: counted from its indexes
+            return
         except Exception:  # CRC mismatch, or it does not decompress or parse
             self.report.corrupt_chunks += 1
             self.count_lost(head.chunk)
             return
+        self.report.wrong_size_chunks += wrong_size
         for record in records:
             self.record(record)
 
@@ -437,7 +472,7 @@ class _Salvager:
 
     def count_lost(self, chunk: Chunk) -> None:
         try:
-            records = breakup_chunk(chunk, validate_crc=False)
+            records = _records_of(_chunk_data(chunk, validate_crc=False)[0])
         except Exception:
             self.report.uncountable_chunks += 1
             self.count_from_indexes, self.counted_by_index = True, False
