@@ -16,11 +16,11 @@ from ..detector import Parameters
 from ..detector.fingerprint import fingerprint
 from ..errors import DoseqslamError, ExitCode, OutputError
 from ..pipeline.annotate import (
-    STAGES,
     AnnotateOptions,
     AnnotateResult,
     annotate_log,
 )
+from ..pipeline.stages import STAGES
 from ..sources.digest import source_sha256
 from .manifest import Counts, FileStamp
 

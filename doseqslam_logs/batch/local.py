@@ -36,7 +36,7 @@ from multiprocessing.context import SpawnContext
 from types import FrameType
 from typing import Any
 
-from ..pipeline.annotate import STAGES
+from ..pipeline.stages import STAGES
 from .engine import EngineSettings, Events
 from .job import Job, Outcome, crashed_outcome, run_job
 

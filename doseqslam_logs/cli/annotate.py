@@ -293,7 +293,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         result = annotate_log(
-            args.log, args.output, params, options, progress, expected, progress.stage
+            args.log, args.output, params, options, progress, expected, observer=progress
         )
     finally:
         progress.close()

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import __version__, waiting
 from ..annotations.records import NO_STAMP, FrameTimes, RunMetadata
-from ..detector import Detector, Parameters, make_detector
+from ..detector import Parameters, make_detector
 from ..errors import (
     DoseqslamError,
     ImageDecodeError,
@@ -79,53 +79,10 @@ from .metric_edges import (
 )
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
+from .stages import StageCallback, StageObserver, observer_of
 
-# The stages of a run, as `annotate_log(stage=...)` announces them when each begins.
-STAGES = ("replay", "verify", "metric", "write")
 # Verification.intrinsics_source of a camera assumed where the CameraInfo's K is unusable.
 ASSUMED = "assumed"
-StageCallback = Callable[[str], None]
-
-
-class StageObserver:
-    """Hears a run's stages: the command's progress, the batch workers, the memory probe
-    (tools/memory_stages.py) and the tests watch a run through one of these. Each method
-    does nothing here; a subclass overrides the ones it needs."""
-
-    def started(self, stage: str) -> None:
-        """`stage`, one of STAGES, begins ("verify" and "metric" only with verification)."""
-
-    def detector_made(self, detector: Detector) -> None:
-        """The replay's detector, before its first frame. The run frees it when the replay
-        ends: an observer that keeps it must let it go at `finished("replay", ...)`."""
-
-    def finished(self, stage: str, product: object) -> None:
-        """A step ended with its product: "replay" a ReplayResult, "verify" a Verification,
-        "metric" a MetricEdges, "annotations" the Annotations (our messages, built before the
-        write), "write" the WriteSummary."""
-
-
-class _Announcing(StageObserver):
-    """`observer`, and `stage(name)` as each stage begins."""
-
-    def __init__(self, stage: StageCallback, observer: StageObserver) -> None:
-        self.stage, self.observer = stage, observer
-
-    def started(self, stage: str) -> None:
-        self.stage(stage)
-        self.observer.started(stage)
-
-    def detector_made(self, detector: Detector) -> None:
-        self.observer.detector_made(detector)
-
-    def finished(self, stage: str, product: object) -> None:
-        self.observer.finished(stage, product)
-
-
-def _observer(stage: StageCallback | None, observer: StageObserver | None) -> StageObserver:
-    """One observer for annotate_log's `stage` callback and `observer`."""
-    observer = observer or StageObserver()
-    return observer if stage is None else _Announcing(stage, observer)
 
 
 @dataclass(frozen=True)
@@ -261,12 +218,13 @@ def verify_decisions(
     features: FeatureSpill | None = None,
     odometry: OdometryFrames | None = None,
     frame_size: tuple[int, int] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> Verification | None:
     """The verification stage over a finished replay (None when it is off); `features`: the
     frames' features the replay extracted, if it did; `odometry`: the camera's poses at the
     frames, for the motion rule (None: it looks at the images); `frame_size`: (width, height)
-    of the frames, for an assumed camera where the CameraInfo's K is unusable. `log`: the
-    run's open Source (or a path)."""
+    of the frames, for an assumed camera where the CameraInfo's K is unusable; `progress(
+    decisions verified)`. `log`: the run's open Source (or a path)."""
     if options.verification is None:
         return None
     intrinsics, origin, unusable = options.intrinsics, "--intrinsics", ""
@@ -291,6 +249,7 @@ def verify_decisions(
         options.verification_cache_bytes,
         None if features is None else features.get,
         None if odometry is None else odometry.camera_path(),
+        progress,
     )
     verified = {item.decision.sequence_id: item for item in checked}
     wall_s = time.perf_counter() - start
@@ -499,7 +458,7 @@ def annotate_log(
     check_output_path(output)  # before the detector runs, not after
     if log.exists():
         refuse_same_file(log, output)
-    callbacks = _Callbacks(progress, expected, _observer(stage, observer))
+    callbacks = _Callbacks(progress, expected, observer_of(stage, observer))
     if not (options.recover and is_mcap_file(log)):
         return _annotate(log, log, output, params, options, callbacks, None)
     with scratch_file(output) as repaired:
@@ -701,6 +660,7 @@ class _Run:
         self, replayed: Replayed, features: FeatureSpill | None, odometry: Odometry
     ) -> Verification | None:
         """The verification stage (None when it is off)."""
+        total = len(replayed.result.decisions)
         verification = verify_decisions(
             self.log.source,
             replayed.topic,
@@ -710,6 +670,7 @@ class _Run:
             features,
             odometry.frames,
             replayed.first_shape,
+            lambda done: self.observer.advanced("verify", done, total),
         )
         if verification is not None:
             self.observer.finished("verify", verification)
@@ -733,6 +694,7 @@ class _Run:
             workers=options.workers,
             odometry=odometry,
             no_intrinsics=verification.no_intrinsics_reason,
+            progress=lambda done, total: self.observer.advanced("metric", done, total),
         )
 
     def annotations(
@@ -777,6 +739,7 @@ class _Run:
             drawn = visualization_of(annotations, source, topic, track)
             annotations = replace(annotations, visualization=drawn)
         self.observer.started("write")
+        total = sum(c.message_count for c in source.channels())
         written = write_annotated_mcap(
             source.path,
             self.output,
@@ -785,6 +748,7 @@ class _Run:
             output_format=options.output_format,
             source=source,
             log_format=self.log.log_format,
+            progress=lambda done: self.observer.advanced("write", done, total),
         )
         self.observer.finished("write", written)
         return written
@@ -804,7 +768,7 @@ def decide_log(
     options = options or AnnotateOptions()
     if params is None:
         params = command_detector_parameters(options.verification)
-    callbacks = _Callbacks(progress, expected, _observer(stage, observer))
+    callbacks = _Callbacks(progress, expected, observer_of(stage, observer))
     return _Run(log, Path(), params, options, callbacks).decide()
 
 

@@ -348,7 +348,7 @@ def metric_edges(
     odometry_topic: str | None = None,
     max_pixels: int = DEFAULT_MAX_PIXELS,
     interval_s: float = METRIC_INTERVAL_S,
-    progress: Callable[[int], None] | None = None,
+    progress: Callable[[int, int], None] | None = None,
     workers: int = 2,
     odometry: Odometry | Literal["read"] = "read",
     no_intrinsics: str = NO_INTRINSICS,
@@ -357,7 +357,8 @@ def metric_edges(
     `log`: the run's open Source (or a path, opened here); `odometry_topic`: None the log's
     default pose topic (`default_pose_topic`), "" none; `odometry`: the odometry at the
     frames when the run has read it already (`read_odometry`), else "read" here;
-    `no_intrinsics`: each pair's reason when `intrinsics` is None.
+    `no_intrinsics`: each pair's reason when `intrinsics` is None; `progress(fits done, fits)`
+    after each fit.
 
     Raises SourceError when the log cannot be read again.
     """
@@ -384,7 +385,7 @@ def metric_edges(
             for done, (key, pose) in enumerate(_in_threads(fits, workers)):
                 poses[key] = pose
                 if progress is not None:
-                    progress(done + 1)
+                    progress(done + 1, len(chosen))
             stats.frames_loaded = fitter.features.loaded
     return _finished(MetricEdges(poses, stats), start)
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 from collections import Counter
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -48,6 +48,7 @@ from .visual_encoders import visual_encoder_for_profile
 from .visualization import Visualization, VisualWriter
 
 LIBRARY = f"doseqslam-logs/{__version__}"
+PROGRESS_EVERY = 64  # input messages copied between two progress calls
 
 
 @dataclass(frozen=True)
@@ -133,8 +134,11 @@ class _Annotator:
         encoder: MessageEncoder,
         messages: Sequence[TimedMessage],
         visuals: VisualWriter | None = None,
+        progress: Callable[[int], None] | None = None,
     ):
         self.writer = writer
+        self.progress = progress
+        self.copied = 0  # input messages copied so far
         self.visuals = visuals
         self.encoder = encoder
         # Sorting by (log time, type, index) fixes the order whatever order the caller used.
@@ -166,6 +170,9 @@ class _Annotator:
 
     def before_message(self, log_time_ns: int) -> None:
         self.write_until(log_time_ns)
+        self.copied += 1
+        if self.progress is not None and self.copied % PROGRESS_EVERY == 0:
+            self.progress(self.copied)
 
     def channel_copied(
         self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
@@ -232,6 +239,7 @@ def _write(
     summary: WriteSummary,
     output_format: OutputFormat,
     source: Source | None,
+    progress: Callable[[int], None] | None = None,
 ) -> None:
     compression = COMPRESSIONS[output_format.compression]
     writer = Writer(stream, chunk_size=output_format.chunk_size, compression=compression)
@@ -241,7 +249,9 @@ def _write(
         encoder = visual_encoder_for_profile(log.profile)
         reads = log.path if source is None else source
         visuals = VisualWriter(writer, encoder, reads, annotations.visualization)
-    annotator = _Annotator(writer, encoder_for_profile(log.profile), annotations.messages, visuals)
+    annotator = _Annotator(
+        writer, encoder_for_profile(log.profile), annotations.messages, visuals, progress
+    )
     if not sidecar:
         copied = log.copy(log.path, writer, annotator)
         summary.copied_messages, summary.replaced_topics = copied.messages, copied.dropped_topics
@@ -259,13 +269,15 @@ def write_annotated_mcap(
     output_format: OutputFormat | None = None,
     source: Source | None = None,
     log_format: LogFormat | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> WriteSummary:
     """Writes `output_path`: the input log's records unchanged plus our channels and metadata
     (only ours and the metadata with `sidecar=True`).
 
     The input is opened read-only and streamed; the match images of the visualization are
     read through `source` (the run's open input) when given, else through the input opened
-    again; `log_format`: the input's format when the caller knows it (else it is probed).
+    again; `log_format`: the input's format when the caller knows it (else it is probed);
+    `progress(input messages copied)` every PROGRESS_EVERY messages.
     The output is written to a temporary file beside it and renamed into place only when
     complete.
     Raises SourceError when the input cannot be read, OutputError when the output cannot be
@@ -278,5 +290,5 @@ def write_annotated_mcap(
     summary = WriteSummary(output, log.kind, log.profile)
     with atomic_output(output) as stream:
         chunks = output_format or OutputFormat()
-        _write(stream, log, annotations, sidecar, summary, chunks, source)
+        _write(stream, log, annotations, sidecar, summary, chunks, source, progress)
     return summary

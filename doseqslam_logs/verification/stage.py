@@ -726,8 +726,10 @@ def verify_in_threads(
     cache_bytes: int = DEFAULT_CACHE_BYTES,
     stored_features: StoredFeatures | None = None,
     camera_path: CameraPath | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> tuple[list[VerifiedDecision], VerificationStats]:
-    """`Verifier.verify` of each decision, on `workers` threads; results in decision order.
+    """`Verifier.verify` of each decision, on `workers` threads; results in decision order;
+    `progress(decisions done)` as each is verified (from the verifying threads).
 
     Each thread opens its own frame loader and has its own Verifier, with an equal share of
     `cache_bytes`, and takes the next chain of CHAIN_DECISIONS decisions as it finishes one.
@@ -741,6 +743,7 @@ def verify_in_threads(
     stats = VerificationStats()
     lock, stop = threading.Lock(), threading.Event()
     chains = iter(range(0, len(decisions), CHAIN_DECISIONS))
+    verified_count = [0]  # decisions verified, over the threads
 
     def work() -> None:
         with open_loader() as loader:
@@ -762,6 +765,10 @@ def verify_in_threads(
                     chain = decisions[start : start + CHAIN_DECISIONS]
                     for offset, verified in enumerate(verifier.verify_all(chain)):
                         results[start + offset] = verified
+                        if progress is not None:
+                            with lock:
+                                verified_count[0] += 1
+                                progress(verified_count[0])
             except Cancelled:
                 pass  # stopped by another thread's error or the main thread's interrupt: that
                 # is what gets raised, not this

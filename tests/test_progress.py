@@ -1,0 +1,91 @@
+"""Every stage shown: the run reports how far verification, the metric fits and the write are
+(`StageObserver.advanced`), and the command line's Progress draws a bar with the time left on a
+terminal and, off one, a line per stage once a run is past QUIET_S (short runs stay silent)."""
+
+from __future__ import annotations
+
+import io
+import re
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+
+from doseqslam_logs.cli import progress as progress_module
+from doseqslam_logs.cli.progress import Progress, remaining
+from doseqslam_logs.pipeline.annotate import annotate_log
+from doseqslam_logs.pipeline.stages import StageObserver
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+class Counts(StageObserver):
+    def __init__(self) -> None:
+        self.advanced_by: dict[str, list[tuple[int, int | None]]] = defaultdict(list)
+        self.order: list[str] = []
+
+    def started(self, stage: str) -> None:
+        self.order.append(stage)
+
+    def advanced(self, stage: str, done: int, total: int | None) -> None:
+        self.advanced_by[stage].append((done, total))
+
+
+@pytest.fixture(scope="module")
+def counts(tmp_path_factory: pytest.TempPathFactory) -> Counts:
+    watch = Counts()
+    annotate_log(SAMPLE, tmp_path_factory.mktemp("run") / "out.mcap", observer=watch)
+    return watch
+
+
+def test_every_stage_after_the_replay_reports_its_count_up_to_its_total(counts: Counts) -> None:
+    assert counts.order == ["replay", "verify", "metric", "write"]
+    verify = counts.advanced_by["verify"]
+    assert [done for done, _ in verify] == list(range(1, 33))  # the sample's 32 sequences
+    assert {total for _, total in verify} == {32}
+    metric = counts.advanced_by["metric"]
+    assert metric and metric[-1][0] == metric[-1][1] > 0
+    write = counts.advanced_by["write"]
+    totals = {total for _, total in write}
+    assert len(totals) == 1 and write[-1][0] <= totals.pop()  # in steps, up to the total
+    assert [done for done, _ in write] == sorted(done for done, _ in write)
+
+
+def test_on_a_terminal_each_stage_has_its_bar_and_time_left(tmp_path: Path) -> None:
+    stream = Terminal()
+    shown = Progress(None, "annotate", stream)
+    annotate_log(SAMPLE, tmp_path / "out.mcap", progress=shown, observer=shown)
+    shown.close()
+    text = stream.getvalue()
+    for stage, unit in (("verify", "sequences"), ("metric", "fits"), ("write", "messages")):
+        assert re.search(rf"annotate {stage} \[[#-]{{30}}\] \d+/\d+ {unit}", text), stage
+    assert "verifying the candidate pairs geometrically" in text and "writing the output" in text
+
+
+def test_off_a_terminal_a_short_run_prints_nothing_and_a_long_one_a_line_per_stage(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(progress_module, "QUIET_S", 1e9)  # a run shorter than QUIET_S, whatever
+    quiet = io.StringIO()  # the machine's load
+    annotate_log(SAMPLE, tmp_path / "a.mcap", observer=Progress(None, "annotate", quiet))
+    assert quiet.getvalue() == ""
+    monkeypatch.setattr(progress_module, "QUIET_S", 0.0)  # as if the run were long
+    monkeypatch.setattr(progress_module, "LINE_EVERY_S", 0.0)
+    lines = io.StringIO()
+    annotate_log(SAMPLE, tmp_path / "b.mcap", observer=Progress(None, "annotate", lines))
+    text = lines.getvalue()
+    assert "\r" not in text
+    for line in ("annotate: verifying the candidate pairs geometrically", "annotate: writing"):
+        assert line in text
+    assert re.search(r"^annotate verify \[#{30}\] 32/32 sequences", text, re.MULTILINE)
+
+
+def test_the_time_left_is_the_rate_so_far() -> None:
+    assert remaining(25, 100, 10.0) == ", 0:30 left"
+    assert remaining(1, 10_000, 1.0) == ", 2:46:39 left"
+    assert remaining(0, 100, 5.0) == remaining(100, 100, 5.0) == remaining(5, None, 1.0) == ""
