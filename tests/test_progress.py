@@ -5,6 +5,7 @@ terminal and, off one, a line per stage once a run is past QUIET_S (short runs s
 from __future__ import annotations
 
 import io
+import json
 import re
 from collections import defaultdict
 from pathlib import Path
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from doseqslam_logs.cli import progress as progress_module
+from doseqslam_logs.cli.main import main
 from doseqslam_logs.cli.progress import Progress, remaining
 from doseqslam_logs.pipeline.annotate import annotate_log
 from doseqslam_logs.pipeline.stages import StageObserver
@@ -43,6 +45,7 @@ def counts(tmp_path_factory: pytest.TempPathFactory) -> Counts:
     return watch
 
 
+@pytest.mark.slow
 def test_every_stage_after_the_replay_reports_its_count_up_to_its_total(counts: Counts) -> None:
     assert counts.order == ["replay", "verify", "metric", "write"]
     verify = counts.advanced_by["verify"]
@@ -56,6 +59,7 @@ def test_every_stage_after_the_replay_reports_its_count_up_to_its_total(counts: 
     assert [done for done, _ in write] == sorted(done for done, _ in write)
 
 
+@pytest.mark.slow
 def test_on_a_terminal_each_stage_has_its_bar_and_time_left(tmp_path: Path) -> None:
     stream = Terminal()
     shown = Progress(None, "annotate", stream)
@@ -67,6 +71,7 @@ def test_on_a_terminal_each_stage_has_its_bar_and_time_left(tmp_path: Path) -> N
     assert "verifying the candidate pairs geometrically" in text and "writing the output" in text
 
 
+@pytest.mark.slow
 def test_off_a_terminal_a_short_run_prints_nothing_and_a_long_one_a_line_per_stage(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -89,3 +94,17 @@ def test_the_time_left_is_the_rate_so_far() -> None:
     assert remaining(25, 100, 10.0) == ", 0:30 left"
     assert remaining(1, 10_000, 1.0) == ", 2:46:39 left"
     assert remaining(0, 100, 5.0) == remaining(100, 100, 5.0) == remaining(5, None, 1.0) == ""
+
+
+@pytest.mark.slow
+def test_annotate_json_has_every_figure_of_the_summary_line(tmp_path: Path, capsys) -> None:
+    assert main(["annotate", str(SAMPLE), "-o", str(tmp_path / "out.mcap"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["loop_closures"] == doc["verification"]["accepted"] == 64
+    verification = doc["verification"]
+    assert verification["model"] == "essential" and verification["wall_time_s"] > 0
+    assert verification["frame_pairs"] > 0 and verification["ms_per_pair"] > 0
+    metric = doc["metric"]
+    assert metric["pairs"] == 64 and sum(metric["methods"].values()) == 64
+    assert metric["odometry_topic"] == "/odom" and metric["methods"]["odometry_pnp"] > 0
+    assert doc["log_time_fallbacks"] == 0 and doc["frames_per_second"] > 0

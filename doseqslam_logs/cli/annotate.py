@@ -229,9 +229,34 @@ def result_json(result: AnnotateResult) -> dict[str, object]:
         "frames_skipped": counts.skipped_total,
         "frames_skipped_by_reason": counts.skipped_by_reason(),
         "unattributed_messages": result.unattributed,
+        "log_time_fallbacks": counts.log_time_fallbacks,
+        "clock_jumps": counts.clock_jumps,
+        "replay_wall_time_s": round(result.replay.wall_time_s, 3),
+        "frames_per_second": round(result.replay.frames_per_second, 1),
         "recovered": None if result.recovery is None else result.recovery.as_metadata(),
         "features": None if result.health is None else result.health.to_json(),
         "verification": _verification_json(result),
+        "metric": _metric_json(result),
+    }
+
+
+def _metric_json(result: AnnotateResult) -> dict[str, object] | None:
+    """What the metric stage gave the accepted pairs (None without verification)."""
+    verification = result.verification
+    if verification is None or verification.metric is None:
+        return None
+    stats = verification.metric.stats
+    return {
+        "pairs": stats.pairs,
+        "fitted": stats.fitted,
+        "methods": {m or "none": n for m, n in sorted(stats.methods.items())},
+        "odometry_topic": stats.odometry_topic or None,
+        "odometry_skipped": dict(stats.odometry_skipped),
+        "odometry_problem": stats.odometry_problem or None,
+        "depth_topic": stats.depth_topic or None,
+        "depth_messages": stats.depth_messages,
+        "depth_skipped": dict(stats.depth_skipped),
+        "wall_time_s": round(stats.wall_s, 3),
     }
 
 
@@ -249,6 +274,9 @@ def _verification_json(result: AnnotateResult) -> dict[str, object] | None:
         "motion_evidence": verification.motion_summary,
         "skipped": stats.skipped,
         "frame_pairs": stats.pairs,
+        "ms_per_pair": round(stats.ms_per_pair, 3),
+        "wall_time_s": round(verification.wall_s, 3),
+        "model": "essential" if verification.intrinsics else "fundamental",
         "intrinsics_source": verification.intrinsics_source,
     }
 

@@ -86,4 +86,4 @@ def frames_between(match: int, query: int, samples: int) -> list[int]:
 def left_by_images(hopeless: list[bool]) -> bool:
     """The image evidence's verdict from the checks of the frames between (True: hopeless,
     the frame does not see the query's place): at least half of them, and one at the least."""
-    return bool(hopeless) and 2 * sum(hopeless) >= len(hopeless)
+    return bool(hopeless) and 3 * sum(hopeless) >= len(hopeless)
