@@ -67,10 +67,10 @@ def test_frames_between_lie_strictly_between_evenly(a, b, samples) -> None:
         assert gaps.max() - gaps.min() <= 1
 
 
-def test_left_by_images_needs_half_of_the_frames_between_away() -> None:
-    assert left_by_images([True, True, False, False])
-    assert left_by_images([True, False, True])
-    assert not left_by_images([True, False, False])
+def test_left_by_images_needs_a_third_of_the_frames_between_away() -> None:
+    assert left_by_images([True, True, False, False, False, False])
+    assert left_by_images([True, False, False])
+    assert not left_by_images([True, False, False, False, False, False])
     assert not left_by_images([])  # no frame between: the camera cannot have left
 
 

@@ -14,7 +14,7 @@ Two kinds of evidence, the first that covers the pair decides:
 * **The images** (no pose topic, or poses that do not cover the pair): `leave_samples` frames
   evenly spaced strictly between the match and the query are checked with the same check as
   the pair, against the query and, where that is hopeless, against the match; the camera left
-  if at least half of them are hopeless against both (under half of `min_inliers`: they see
+  if at least a third of them are hopeless against both (under half of `min_inliers`: they see
   neither end's place). A still camera's frames between keep seeing it, though on small,
   noisy frames not always both ends of it; one that drove away sees other places for most of
   the time between.
@@ -83,7 +83,9 @@ def frames_between(match: int, query: int, samples: int) -> list[int]:
     return [first + ((k + 1) * (last - first)) // (samples + 1) for k in range(samples)]
 
 
-def left_by_images(hopeless: list[bool]) -> bool:
-    """The image evidence's verdict from the checks of the frames between (True: hopeless,
-    the frame does not see the query's place): at least half of them, and one at the least."""
-    return bool(hopeless) and 3 * sum(hopeless) >= len(hopeless)
+def left_by_images(away: list[bool]) -> bool:
+    """The image evidence's verdict from the frames between (True: the frame sees neither the
+    query's place nor the match's): at least a third of them, and one at the least. Not one:
+    on small noisy frames a standing camera's frame now and then fails both checks; not half:
+    a long stop at the place before leaving fills most of the span with frames that see it."""
+    return bool(away) and 3 * sum(away) >= len(away)
