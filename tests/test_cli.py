@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from golden import RTABMAP_FRAMES, RTABMAP_LOOP_EVENTS
@@ -145,3 +146,22 @@ def test_console_script_runs(shared_data) -> None:
         check=False,
     )
     assert proc.returncode == ExitCode.UNREADABLE_INPUT and "Traceback" not in proc.stderr
+
+
+def test_info_on_an_annotated_log_summarises_the_run_and_counts_one_camera(
+    annotated_sample, capsys
+) -> None:
+    out_log = annotated_sample("drive_loops.ros2.mcap")
+    code, out, _ = run_cli(capsys, "info", out_log, "--json")
+    doc = json.loads(out)
+    assert code == 0 and [c["topic"] for c in doc["cameras"]] == ["/camera/image/compressed"]
+    assert "/doseqslam/match/image/compressed" in {c["topic"] for c in doc["other_channels"]}
+    run = doc["doseqslam_run"]
+    assert run["loop_closures"] == 64 and run["verification"] == "on"
+    assert run["source_file"] == "drive_loops.ros2.mcap" and run["candidate_pairs"] >= 64
+    code, text, _ = run_cli(capsys, "info", out_log)
+    assert "1 camera channel(s)" in text and "annotated by doseqslam-logs" in text
+    assert "64 loop closures of" in text
+    sample = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
+    _code, plain, _ = run_cli(capsys, "info", sample)
+    assert "annotated by" not in plain

@@ -191,3 +191,18 @@ def _decoder(schema: Schema, message_encoding: str) -> Any:
     if make is None:
         raise ValueError(f"no decoder for {message_encoding}/{schema.encoding}")
     return make(schema)
+
+
+def read_run_metadata(path: str | Path) -> RunMetadata | None:
+    """The `doseqslam` metadata record of an MCAP file (None when it has none, or is not an
+    MCAP file that can be read): what `info` says of a run, without reading its messages."""
+    file = Path(path)
+    try:
+        with file.open("rb") as stream:
+            entries, _ = _records_of_ours(make_reader(stream).iter_metadata(), ())
+            if not entries:
+                stream.seek(0)
+                entries, _ = _records_of_ours(_metadata_and_attachments(stream), ())
+        return RunMetadata.from_entries(entries) if entries else None
+    except (OSError, McapError, ValueError, KeyError, TypeError, struct.error):
+        return None

@@ -9,6 +9,7 @@ from itertools import islice
 from pathlib import Path
 from typing import Any
 
+from ..annotations.records import OUR_TOPIC_PREFIX, RunMetadata
 from ..errors import ImageDecodeError
 from ..sources import image_channels, open_source
 from ..sources.base import ChannelInfo, Source
@@ -71,20 +72,60 @@ def _span(start: int | None, end: int | None) -> str:
     return f"{(end - start) / 1e9:.1f} s from {start / 1e9:.3f}"
 
 
+def run_summary(run: RunMetadata) -> dict[str, Any]:
+    """What an annotated log says of the run that wrote it."""
+    return {
+        "tool_version": run.tool_version,
+        "method": run.method,
+        "parameters_hash": run.parameters_hash,
+        "verification": run.verification,
+        "verification_hash": run.verification_hash or None,
+        "loop_closures": run.loop_closures,
+        "candidate_pairs": run.verified_pairs if run.verification == "on" else None,
+        "sequences": run.sequences,
+        "frames_used": run.frames_used,
+        "image_topic": run.image_topic,
+        "source_file": run.source_file,
+        "source_sha256": run.source_sha256,
+    }
+
+
+def _run_line(run: RunMetadata) -> str:
+    verified = (
+        f"verification {run.verification_hash}, {run.loop_closures} loop closures of "
+        f"{run.verified_pairs} candidate pairs"
+        if run.verification == "on"
+        else f"no verification, {run.loop_closures} loop closures"
+    )
+    return (
+        f"  annotated by doseqslam-logs {run.tool_version}: {run.method}, parameters "
+        f"{run.parameters_hash}, {verified}, {run.sequences} sequences over {run.frames_used} "
+        f"frames of {run.image_topic} from {run.source_file}"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
+    from ..annotations.reader import read_run_metadata
+
     with open_source(args.log) as source:
         channels = source.channels()
-        cameras = [camera_summary(source, c) for c in image_channels(source)]
-    others = [c for c in channels if not c.is_image]
+        # Our match images are a picture of the run, not a camera of the log.
+        ours = [c for c in image_channels(source) if c.topic.startswith(OUR_TOPIC_PREFIX)]
+        cameras = [camera_summary(source, c) for c in image_channels(source) if c not in ours]
+    others = [c for c in channels if not c.is_image or c in ours]
+    annotated = read_run_metadata(args.log) if Path(args.log).is_file() else None
     if args.json:
         doc: dict[str, Any] = {
             "log": str(args.log),
             "cameras": [asdict(c) for c in cameras],
             "other_channels": [asdict(c) for c in others],
+            "doseqslam_run": None if annotated is None else run_summary(annotated),
         }
         print(json.dumps(doc, indent=2))
         return 0
     print(f"{args.log}: {len(channels)} channels, {len(cameras)} camera channel(s)")
+    if annotated is not None:
+        print(_run_line(annotated))
     for cam in cameras:
         rate = f"{cam.rate_hz:.2f} Hz" if cam.rate_hz else "? Hz"
         print(
