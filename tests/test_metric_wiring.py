@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import sys
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -21,6 +20,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from scipy.spatial.transform import Rotation
 
+import pose_graph_check as check
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.annotations.records import LoopClosureRecord
 from doseqslam_logs.cli.main import main
@@ -34,11 +34,9 @@ from doseqslam_logs.export.pose_graph import (
 )
 from doseqslam_logs.sources.poses import read_poses
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
+from loggen import make_sample_logs as gen
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
-import make_sample_logs as gen  # noqa: E402
-import pose_graph_check as check  # noqa: E402
 
 LOOPS = REPO / "sample_logs" / "drive_loops.ros2.mcap"
 IMAGE = "/camera/image/compressed"

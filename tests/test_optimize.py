@@ -21,6 +21,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+import pose_graph_check as check
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.export.base import OPTIMIZED_POSE_TOPIC, ExportOptions, OptimizeOptions
@@ -33,8 +34,6 @@ from doseqslam_logs.sources.poses import PoseTrack, read_poses
 gtsam = pytest.importorskip("gtsam")
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))  # the drifting drive and the ATE, shared with the table
-import pose_graph_check as check  # noqa: E402
 
 SAMPLES = REPO / "sample_logs"
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])

@@ -15,13 +15,13 @@ Two drives, both annotated with the command's defaults (geometric verification o
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import pose_graph_check as check
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import verified_body_rotation
@@ -32,8 +32,6 @@ pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: m
 gtsam = pytest.importorskip("gtsam")
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))  # the round trip, shared with tools/pose_graph_table.py
-import pose_graph_check as check  # noqa: E402
 
 DRIVE_LOOPS = REPO / "sample_logs" / "drive_loops.ros2.mcap"
 

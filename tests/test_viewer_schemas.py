@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from mcap.writer import Writer
 from rosbags.highlevel import AnyReader, AnyReaderError
 from test_sinks import check_json_schema, make_annotations, write_json_mcap
 
+import ros1_mcap_to_bag
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.annotations.records import LOOP_CLOSURE, SEQUENCE, LoopClosureRecord
 from doseqslam_logs.annotations.schema_files import read_schema
@@ -26,9 +26,7 @@ from doseqslam_logs.sinks.encoders import JsonEncoder
 from doseqslam_logs.sinks.mcap_writer import write_annotated_mcap
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
 
-import ros1_mcap_to_bag  # noqa: E402
 
 NAMES = ("LoopClosure", "Sequence")
 OURS = (LOOP_CLOSURE.topic, SEQUENCE.topic)

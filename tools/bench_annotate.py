@@ -42,7 +42,8 @@ ROOT = Path(__file__).resolve().parent.parent
 SAMPLE = ROOT / "sample_logs" / "drive_loops.ros2.mcap"
 HOUR = Path("/tmp/hour/hour.ros2.mcap")
 HOUR_COMMAND = (
-    "python tools/make_sample_logs.py --out /tmp/hour --name hour --duration 3600 --rate 10 "
+    "PYTHONPATH=tools python -m loggen.make_sample_logs --out /tmp/hour --name hour "
+    "--duration 3600 --rate 10 "
     "--width 640 --height 480 --formats ros2mcap --jobs 2"
 )
 STAGES = (

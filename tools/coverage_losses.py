@@ -11,7 +11,8 @@ true pairs turned down for their rotation are listed with their true distance an
     python tools/coverage_losses.py OUT.mcap --gt LOG.gt.npz [--poses LOG.poses.csv]
 
 An investigation aid for issue #35's coverage targets, not a benchmark: it reads one annotated
-log of a generated drive (tools/make_sample_logs.py, tools/generalization_matrix.py --scratch).
+log of a generated drive (tools/loggen/make_sample_logs.py, tools/generalization_matrix.py
+--scratch).
 """
 
 from __future__ import annotations

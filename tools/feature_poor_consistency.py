@@ -15,12 +15,11 @@ import tempfile
 from pathlib import Path
 
 import feature_poor_table as fpt
-import shrink_log
-
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.evaluation.groundtruth import load_ground_truth
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from loggen import shrink_log
 
 SLACK = 2  # frames
 KS = (0, 1, 2, 4)

@@ -14,9 +14,10 @@ import sys
 from statistics import median
 
 import cv2
-import feature_poor_table as fpt
 import numpy as np
-import shrink_log
+
+import feature_poor_table as fpt
+from loggen import shrink_log
 
 SIDES = (64, 96, 128, 160, 192, 256)
 WORKING_SIZE = 320

@@ -3,13 +3,13 @@
 samples, our sample logs and Lip6 Outdoor, annotated with the defaults and with
 `--no-verify --method seqslam`, scored against each one's ground-truth matrix.
 
-Each source is shrunk to each size (tools/shrink_log.py, area-averaged grey, a ROS 2 MCAP of
+Each source is shrunk to each size (tools/loggen/shrink_log.py, area-averaged grey, a ROS 2 MCAP of
 mono8 images in a temporary folder), then annotated (`annotate_log`, what `annotate` runs) and
 scored (`evaluate_log`, what `evaluate OUT.mcap --gt GT` runs): the defaults by their verified
 pairs, the unverified SeqSLAM by every pair at its th. Lip6 Outdoor is held out: it is
 reported, never tuned on (`--datasets` leaves it out by default). `--dark F` multiplies the
 pixels by F after shrinking: the night / low-contrast version. `--log LOG` adds a generated
-drive (tools/make_sample_logs.py), scored against the .gt.npz beside it; one generated with
+drive (tools/loggen/make_sample_logs.py), scored against the .gt.npz beside it; one generated with
 --season-change also gets its true pairs across the change counted ("true (A across)").
 
 How small frames are enlarged for features (issue #22 item 2) was chosen with the options
@@ -37,8 +37,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from statistics import median
 
-import shrink_log
-
 import doseqslam_logs.detector.segmentation as segmentation
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.detector import Parameters
@@ -52,6 +50,7 @@ from doseqslam_logs.verification import (
     VerificationParameters,
     verified_detector_parameters,
 )
+from loggen import shrink_log
 
 DATA = Path("../shared/data")
 SAMPLES = Path("sample_logs")
@@ -96,7 +95,8 @@ def sources(data: Path) -> dict[str, list[Source]]:
 
 
 def generated(log: Path) -> Source:
-    """A drive of tools/make_sample_logs.py: NAME.ros2.mcap beside NAME.gt.npz and NAME.json."""
+    """A drive of tools/loggen/make_sample_logs.py: NAME.ros2.mcap beside NAME.gt.npz and
+    NAME.json."""
     stem = log.name.split(".")[0]
     info = json.loads((log.parent / f"{stem}.json").read_text())
     season = info.get("season_change")

@@ -14,7 +14,7 @@ sensor noise 2, steady lighting, no stop), over:
     clock       steady, variable rate
     route       loops, figure8, outandback
 
-each with --seeds seeds. Every cell's log is generated (tools/make_sample_logs.py, cached in
+each with --seeds seeds. Every cell's log is generated (tools/loggen/make_sample_logs.py, cached in
 --scratch), annotated with the command's defaults (plus what follows `--`), and scored against
 its ground truth: verified TP, FP, precision, R@P100 and the share of 1-s and 5-s revisit
 windows with a true loop closure. One row per log, then a summary line.
@@ -38,11 +38,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import make_sample_logs as gen
-
 from doseqslam_logs.cli.main import main as command
 from doseqslam_logs.evaluation.log_run import LogEvaluationOptions, evaluate_log
 from doseqslam_logs.verification.motion import STATIONARY
+from loggen import make_sample_logs as gen
 
 BASE = gen.Config(
     name="base",

@@ -10,7 +10,7 @@ depth topic, which the samples lack). The result is compared with the true relat
 for comparison (its translation error is the true distance between the two cameras).
 
 Frames: both pose topics are body poses (x forward, y left, z up) of the camera itself
-(tools/make_sample_logs.py: the true camera pose at 1.6 m; the odometry integrates the same
+(tools/loggen/make_sample_logs.py: the true camera pose at 1.6 m; the odometry integrates the same
 planar motion from the start pose); the camera's optical axes are turned into body axes by
 `export.pose_graph.OPTICAL_TO_BODY`, so T_world_camera = T_world_body * (OPTICAL_TO_BODY, 0).
 

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import make_sample_logs as gen
 import numpy as np
 import numpy.typing as npt
 
@@ -24,6 +23,7 @@ from doseqslam_logs.export.gtsam_graph import optimize_pose_graph
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph
 from doseqslam_logs.sources.poses import read_poses
+from loggen import make_sample_logs as gen
 
 F64 = npt.NDArray[np.float64]
 

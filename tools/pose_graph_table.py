@@ -44,11 +44,10 @@ import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-import make_sample_logs as gen
 import numpy as np
-import pose_graph_check as check
 from scipy.spatial.transform import Rotation
 
+import pose_graph_check as check
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.cli.main import main as cli_main
 from doseqslam_logs.export.base import ExportOptions, OptimizeOptions
@@ -56,6 +55,7 @@ from doseqslam_logs.export.gtsam_graph import optimize_pose_graph
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph, relative_pose
 from doseqslam_logs.sources.poses import PoseTrack, read_poses
+from loggen import make_sample_logs as gen
 
 ROOT = Path(__file__).resolve().parent.parent
 

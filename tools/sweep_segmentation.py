@@ -29,7 +29,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from make_sample_logs import START_NS  # the generated hour's first stamp
+from loggen.make_sample_logs import START_NS  # the generated hour's first stamp
 
 SAMPLES = (
     "sample_logs/drive_loops.ros2.mcap",

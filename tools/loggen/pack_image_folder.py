@@ -6,8 +6,8 @@ Images are taken in natural file-name order (2.jpg before 10.jpg), frame i stamp
 JPEG or PNG bytes), so annotating the packed log must give what `evaluate --images` gives on
 the folder:
 
-    python tools/pack_image_folder.py ../shared/data/rtabmap_samples_loop/images --fps 1 \\
-        --out /tmp/packed --name rtabmap
+    PYTHONPATH=tools python -m loggen.pack_image_folder \\
+        ../shared/data/rtabmap_samples_loop/images --fps 1 --out /tmp/packed --name rtabmap
 """
 
 from __future__ import annotations
@@ -18,7 +18,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from camera_log_writers import (
+
+from doseqslam_logs.sources.image_folder import list_images
+from loggen.camera_log_writers import (
     FORMATS,
     Format,
     ImageFrame,
@@ -26,8 +28,6 @@ from camera_log_writers import (
     output_path,
     parse_formats,
 )
-
-from doseqslam_logs.sources.image_folder import list_images
 
 START_NS = 1_700_000_000 * 10**9  # a plausible epoch time, so logs look recorded, not at 1970
 ENCODINGS = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}

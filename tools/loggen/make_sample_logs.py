@@ -43,7 +43,8 @@ those of the same drive without it, and the .json names the first frame of the n
 
 Every output is byte-deterministic per seed and parameters (also with --jobs > 1): frame i's
 noise comes from its own generator seeded by (seed, i). See camera_log_writers for the
-containers. Run `python tools/make_sample_logs.py --samples` to regenerate sample_logs/.
+containers. Run `PYTHONPATH=tools python -m loggen.make_sample_logs --samples` (from the
+repository root) to regenerate sample_logs/.
 """
 
 from __future__ import annotations
@@ -64,12 +65,13 @@ from multiprocessing.pool import AsyncResult
 from pathlib import Path
 from typing import Any, Final, Literal
 
-import camera_log_writers as clw
 import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy import sparse
 from scipy.spatial import cKDTree
+
+from loggen import camera_log_writers as clw
 
 # Array aliases name the intended dtype; they are NDArray[Any] because numpy's stubs lose the
 # dtype through most arithmetic, and casts everywhere would hide the code.
@@ -1426,6 +1428,8 @@ def _open_writers(config: Config, out: Path) -> dict[str, clw.CameraLogWriter]:
 def _metadata(config: Config) -> dict[str, str]:
     values = config.recorded()
     values["formats"] = ",".join(config.formats)
+    # The generator's path when the committed logs were made, kept so that they regenerate
+    # byte for byte (every log carries this metadata record).
     values["tool"] = "tools/make_sample_logs.py"
     return {k: str(v) for k, v in sorted(values.items())}
 
@@ -1565,7 +1569,7 @@ def _say(enabled: bool, text: str) -> None:
 
 # -- the committed samples -------------------------------------------------------------------------
 
-REPO: Final = Path(__file__).resolve().parents[1]
+REPO: Final = Path(__file__).resolve().parents[2]
 _SAMPLE_IMAGE: Final[dict[str, Any]] = {"rate": 2.0, "quality": 70, "noise_sigma": 1.5}
 SAMPLES: Final[tuple[Config, ...]] = (
     Config(name="drive_loops", seed=11, route="loops", duration=120.0, **_SAMPLE_IMAGE),
@@ -1591,7 +1595,9 @@ SAMPLES: Final[tuple[Config, ...]] = (
         **_SAMPLE_IMAGE,
     ),
 )
-SAMPLES_COMMAND: Final = "python tools/make_sample_logs.py --samples"
+# How to run this module (from the repository root), as the samples' README shows it.
+COMMAND: Final = "PYTHONPATH=tools python -m loggen.make_sample_logs"
+SAMPLES_COMMAND: Final = f"{COMMAND} --samples"
 
 _FORMAT_NAMES: Final[dict[str, str]] = {
     "ros2mcap": "ROS 2 MCAP (profile ros2, CDR, sensor_msgs/msg/CompressedImage)",
@@ -1605,7 +1611,7 @@ _FORMAT_NAMES: Final[dict[str, str]] = {
 
 
 def command_line(config: Config, out: str = "sample_logs") -> str:
-    """The `make_sample_logs.py` command that generates `config` into `out`."""
+    """The command (COMMAND and its options) that generates `config` into `out`."""
     args = [
         f"--out {out} --name {config.name} --seed {config.seed} --route {config.route}",
         f"--duration {config.duration:g} --rate {config.rate:g}",
@@ -1627,7 +1633,7 @@ def command_line(config: Config, out: str = "sample_logs") -> str:
         (config.season_change, "--season-change"),
     ]
     args += [flag for wanted, flag in optional if wanted]
-    return "python tools/make_sample_logs.py " + " ".join(args)
+    return f"{COMMAND} " + " ".join(args)
 
 
 def make_samples(out: Path, jobs: int) -> list[Result]:
@@ -1710,7 +1716,7 @@ def sample_readme(results: Sequence[Result], out: Path) -> str:
     head = [
         "# Sample logs",
         "",
-        "Procedural street drives made by `tools/make_sample_logs.py`, rewritten by",
+        "Procedural street drives made by `tools/loggen/make_sample_logs.py`, rewritten by",
         f"`{SAMPLES_COMMAND}` (run from the repository root).",
         "",
         "## What is byte for byte",
@@ -1722,21 +1728,23 @@ def sample_readme(results: Sequence[Result], out: Path) -> str:
         "  may differ by a few bytes: the rendering and the poses go through NumPy and OpenCV",
         "  floating-point kernels whose SIMD paths (AVX2, AVX-512, NEON) round differently in",
         "  the last bit. What stays the same there, and is tested",
-        "  (`tests/test_sample_logs.py`, with `tools/compare_sample_logs.py`):",
+        "  (`tests/test_sample_logs.py`, with `tools/loggen/compare_sample_logs.py`):",
         "  - the container facts (MCAP profile, schemas, channels, metadata; bag connections),",
         "    the messages in the same order with the same topics, types, log and publish times,",
         "    and every decoded field exactly (stamps, frame ids, CameraInfo, image formats);",
         "  - pose and velocity floats (`pose.*`, `twist.*`) to 1e-9 (they differ by an ulp);",
         "  - decoded image values: in every frame at least 99 % within one grey level, over a",
         "    log at least 99.9 %, none more than 32 levels off. Measured with every SIMD",
-        "    extension of NumPy and OpenCV switched off (`tools/other_processor.py`): a few",
-        "    frames per log differ, on at most 4.4e-5 of the values, by at most 3 levels (a",
-        "    pixel on a rounding boundary moves one level, and JPEG spreads it over its block);",
+        "    extension of NumPy and OpenCV switched off (`tools/loggen/other_processor.py`):",
+        "    a few frames per log differ, on at most 4.4e-5 of the values, by at most 3 levels",
+        "    (a pixel on a rounding boundary moves one level, and JPEG spreads it over its",
+        "    block);",
         "  - the detector's decisions on the logs: the same sequences, matches and verdicts,",
         "    scores within 1 %.",
         "- The committed files were written on x86-64 with NumPy's AVX2 kernels. On an AVX-512",
-        "  machine, `python tools/other_processor.py -- " + SAMPLES_COMMAND + "` does not",
-        "  reproduce them (it switches off more than AVX-512); setting",
+        "  machine, `PYTHONPATH=tools python -m loggen.other_processor -- python -m",
+        "  loggen.make_sample_logs --samples` does not reproduce them (it switches off more",
+        "  than AVX-512); setting",
         "  `NPY_DISABLE_CPU_FEATURES='X86_V4 AVX512_ICL'` does, byte for byte.",
         "",
         "## The drives",

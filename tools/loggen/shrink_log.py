@@ -3,9 +3,10 @@
 a ROS 2 MCAP of raw mono8 images (sensor_msgs/msg/Image), the way thumbnail cameras and
 SeqSLAM's classic 64x32 benchmarks record them:
 
-    python tools/shrink_log.py sample_logs/drive_loops.ros2.mcap --size 64x32 -o /tmp/dl64.mcap
-    python tools/shrink_log.py ../shared/data/rtabmap_samples_loop/images --fps 1 \\
-        --size 128x64 -o /tmp/rtab128.mcap
+    PYTHONPATH=tools python -m loggen.shrink_log sample_logs/drive_loops.ros2.mcap \\
+        --size 64x32 -o /tmp/dl64.mcap
+    PYTHONPATH=tools python -m loggen.shrink_log ../shared/data/rtabmap_samples_loop/images \\
+        --fps 1 --size 128x64 -o /tmp/rtab128.mcap
 
 A log keeps its frames' header stamps; a folder's frame i is stamped START + i / fps. Frame
 indices are kept, so the source's ground-truth matrix scores the small log; a log's CameraInfo
@@ -22,12 +23,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import numpy.typing as npt
-from camera_log_writers import CameraIntrinsics, ImageFrame, open_writer
 
 from doseqslam_logs.sources import open_source, pick_image_topic
 from doseqslam_logs.sources.camera_info import read_camera_info
 from doseqslam_logs.sources.image_folder import list_images
 from doseqslam_logs.sources.images import decode_gray
+from loggen.camera_log_writers import CameraIntrinsics, ImageFrame, open_writer
 
 START_NS = 1_700_000_000 * 10**9
 Gray = npt.NDArray[np.uint8]
