@@ -57,8 +57,17 @@ def imported_after(argv: list[str] | None, cwd: Path) -> tuple[int | None, list[
         (["annotate"], 2),  # required arguments missing
         (["annotate", str(SAMPLE), "-o", "out.mcap", "--no-such-option"], 2),
         (["evaluate", "--help"], 0),
+        (["to-bag", "--help"], 0),
     ],
-    ids=["import", "--version", "--help", "annotate", "unknown option", "evaluate --help"],
+    ids=[
+        "import",
+        "--version",
+        "--help",
+        "annotate",
+        "unknown option",
+        "evaluate --help",
+        "to-bag --help",
+    ],
 )
 def test_parsing_the_arguments_imports_nothing_heavy(
     argv: list[str] | None, code: int | None, tmp_path: Path
