@@ -3,7 +3,7 @@
 OpenCV, faiss and SciPy took about 1 s to import, before any command could even print its
 version: now only the stages that use them import them. Checked by what a fresh interpreter
 has imported after the command, not by wall time (a loaded machine would make that flaky);
-`tools/startup_time.py` prints the times.
+`tools/bench/startup_time.py` prints the times.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 rung the log allows, and the exports and `optimize` use it.
 
 Errors are measured against `/ground_truth/pose` (body poses of the camera, turned into
-optical axes with OPTICAL_TO_BODY, as tools/metric_edges.py does).
+optical axes with OPTICAL_TO_BODY, as tools/reproduce/metric_edges.py does).
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from scipy.spatial.transform import Rotation
 
-import pose_graph_check as check
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.annotations.records import LoopClosureRecord
 from doseqslam_logs.cli.main import main
@@ -35,6 +34,7 @@ from doseqslam_logs.export.pose_graph import (
 from doseqslam_logs.sources.poses import read_poses
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
 from loggen import make_sample_logs as gen
+from reproduce import pose_graph_check as check
 
 REPO = Path(__file__).resolve().parents[1]
 

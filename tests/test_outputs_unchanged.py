@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-import compare_versions
+from reproduce import compare_versions
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import generalization_matrix as matrix
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ParameterError
 from doseqslam_logs.verification import DEFAULT_VERIFICATION
 from doseqslam_logs.verification.stage import SECOND_GUESS_REASON
 from loggen import make_sample_logs as gen
+from reproduce import generalization_matrix as matrix
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,6 +1,6 @@
 """Compare two folders of generated sample logs the way that holds on every processor.
 
-    PYTHONPATH=tools python -m loggen.compare_sample_logs sample_logs /tmp/regenerated
+    python -m loggen.compare_sample_logs sample_logs /tmp/regenerated
 
 The generator renders through floating-point NumPy and OpenCV kernels whose SIMD paths (AVX2,
 AVX-512, NEON) round differently in the last bit, so a log regenerated on another processor may

@@ -1,7 +1,7 @@
 """Run a command as if on an older processor: NumPy's and OpenCV's SIMD dispatch switched off.
 
-    PYTHONPATH=tools python -m loggen.other_processor -- .venv/bin/pytest tests
-    PYTHONPATH=tools python -m loggen.other_processor --print   # its environment, as shell lines
+    python -m loggen.other_processor -- .venv/bin/pytest tests
+    python -m loggen.other_processor --print   # its environment, as shell lines
 
 NumPy and OpenCV pick kernels at run time by what the processor offers (AVX2, AVX-512, NEON
 extensions). Their float kernels round differently in the last bit, so a result that holds only

@@ -6,7 +6,7 @@ Images are taken in natural file-name order (2.jpg before 10.jpg), frame i stamp
 JPEG or PNG bytes), so annotating the packed log must give what `evaluate --images` gives on
 the folder:
 
-    PYTHONPATH=tools python -m loggen.pack_image_folder \\
+    python -m loggen.pack_image_folder \\
         ../shared/data/rtabmap_samples_loop/images --fps 1 --out /tmp/packed --name rtabmap
 """
 

@@ -3,9 +3,9 @@
 a ROS 2 MCAP of raw mono8 images (sensor_msgs/msg/Image), the way thumbnail cameras and
 SeqSLAM's classic 64x32 benchmarks record them:
 
-    PYTHONPATH=tools python -m loggen.shrink_log sample_logs/drive_loops.ros2.mcap \\
+    python -m loggen.shrink_log sample_logs/drive_loops.ros2.mcap \\
         --size 64x32 -o /tmp/dl64.mcap
-    PYTHONPATH=tools python -m loggen.shrink_log ../shared/data/rtabmap_samples_loop/images \\
+    python -m loggen.shrink_log ../shared/data/rtabmap_samples_loop/images \\
         --fps 1 --size 128x64 -o /tmp/rtab128.mcap
 
 A log keeps its frames' header stamps; a folder's frame i is stamped START + i / fps. Frame

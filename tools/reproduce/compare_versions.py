@@ -1,7 +1,7 @@
 """Annotate the same logs with this version and an earlier one, on this machine, and compare.
 
-    python tools/compare_versions.py 4c02724                     # the committed samples
-    python tools/compare_versions.py 4c02724 LOG... -- --no-verify
+    python -m reproduce.compare_versions 4c02724                     # the committed samples
+    python -m reproduce.compare_versions 4c02724 LOG... -- --no-verify
 
 The earlier version is taken from git (`git archive REV`) into a temporary folder and run from
 there; this version is the installed package. Both run here, one after the other, so the bytes
@@ -22,7 +22,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLES = [
     "drive_loops.ros2.mcap",
     "drive_loops.foxglove.mcap",

@@ -16,9 +16,9 @@ process) is its own:
 Outputs go to a temporary directory (--tmp-dir, default: beside the hour log, so on the same
 disk) and are removed. Prints a markdown table; --json FILE also writes every figure.
 
-    python tools/bench_annotate.py                              # sample log + 1-hour log
-    python tools/bench_annotate.py --sidecar --cli
-    python tools/bench_annotate.py --no-sample --minutes 10,30,60  # growth with log length
+    python -m bench.annotate                              # sample log + 1-hour log
+    python -m bench.annotate --sidecar --cli
+    python -m bench.annotate --no-sample --minutes 10,30,60  # growth with log length
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "sample_logs" / "drive_loops.ros2.mcap"
 HOUR = Path("/tmp/hour/hour.ros2.mcap")
 HOUR_COMMAND = (

@@ -5,7 +5,7 @@
 and once with `pipeline.frame_spill.FileSpill` (the newest two blocks resident); 2,000 windows
 of 300 columns against a 30-frame query, three alternating rounds, `time.process_time`.
 
-    PYTHONPATH=. python tools/bench_frame_spill.py
+    python -m bench.frame_spill
 """
 
 from __future__ import annotations

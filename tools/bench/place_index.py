@@ -14,8 +14,8 @@ added online, each frame queried against frames at least --min-age-s seconds old
 is added. A query is a hit at k when one of its k results is within --tolerance frames of a
 ground-truth cell. Only queries with a ground-truth cell in their database count.
 
-    python tools/bench_place_index.py --rtabmap          # about 9 minutes on 2 shared cores
-    python tools/bench_place_index.py --sizes 2500,25000   # about 1.5 minutes
+    python -m bench.place_index --rtabmap          # about 9 minutes on 2 shared cores
+    python -m bench.place_index --sizes 2500,25000   # about 1.5 minutes
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from doseqslam_logs.detector.params import Parameters
 from doseqslam_logs.detector.place_index import PlaceIndex, PlaceIndexParams, memory_bound
 from doseqslam_logs.detector.segmentation import DescriptorSegmenter
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLES = REPO / "sample_logs"
 SAMPLE_LOGS = ("drive_loops.ros2.mcap", "drive_parked.ros2.mcap", "drive_varrate.bag")
 RTABMAP = REPO.parent / "shared" / "data" / "rtabmap_samples_loop"

@@ -6,8 +6,8 @@ of frame vectors (36,000 frames = the whole 1-hour 10 Hz log by default). Every 
 are checked against the reference before its time is printed. CPU time (process_time) is
 reported beside wall time: on a shared machine it is the steadier of the two.
 
-    python tools/bench_sad.py                      # 36,000 frames
-    python tools/bench_sad.py --frames 10000 --repeat 3
+    python -m bench.sad                      # 36,000 frames
+    python -m bench.sad --frames 10000 --repeat 3
 """
 
 from __future__ import annotations

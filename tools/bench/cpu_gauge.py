@@ -6,8 +6,8 @@ varies during a day (docs/performance.md: 10.4 to 15.0 ms a frame within two hou
 next to a benchmark to tell a slower machine from slower code. The frames: the first 400 of a
 log's camera topic, shrunk to 240 px as the segmentation does, SIFT (500 features) on 2 threads.
 
-    python tools/cpu_gauge.py                     # the 1-hour log
-    python tools/cpu_gauge.py sample_logs/drive_loops.ros2.mcap
+    python -m bench.cpu_gauge                     # the 1-hour log
+    python -m bench.cpu_gauge sample_logs/drive_loops.ros2.mcap
 """
 
 from __future__ import annotations

@@ -8,10 +8,10 @@ For every such window the check kept is one whose match the ground truth calls t
 that had no candidate at all, are counted apart. With the generator's poses (.poses.csv), the
 true pairs turned down for their rotation are listed with their true distance and heading.
 
-    python tools/coverage_losses.py OUT.mcap --gt LOG.gt.npz [--poses LOG.poses.csv]
+    python -m reproduce.coverage_losses OUT.mcap --gt LOG.gt.npz [--poses LOG.poses.csv]
 
 An investigation aid for issue #35's coverage targets, not a benchmark: it reads one annotated
-log of a generated drive (tools/loggen/make_sample_logs.py, tools/generalization_matrix.py
+log of a generated drive (tools/loggen/make_sample_logs.py, tools/reproduce/generalization_matrix.py
 --scratch).
 """
 

@@ -14,8 +14,8 @@ Frames: both pose topics are body poses (x forward, y left, z up) of the camera 
 planar motion from the start pose); the camera's optical axes are turned into body axes by
 `export.pose_graph.OPTICAL_TO_BODY`, so T_world_camera = T_world_body * (OPTICAL_TO_BODY, 0).
 
-    PYTHONPATH=$PWD python tools/metric_edges.py                 # the three committed samples
-    PYTHONPATH=$PWD python tools/metric_edges.py LOG ... --scratch /tmp/x --verbose
+    python -m reproduce.metric_edges                 # the three committed samples
+    python -m reproduce.metric_edges LOG ... --scratch /tmp/x --verbose
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from doseqslam_logs.verification.metric_pose import (
 )
 
 F64 = npt.NDArray[np.float64]
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = [
     ROOT / "sample_logs" / "drive_loops.ros2.mcap",
     ROOT / "sample_logs" / "drive_parked.ros2.mcap",

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""The feature-poor table of docs/results.md (issue #22): small grey versions of the RTAB-Map
-samples, our sample logs and Lip6 Outdoor, annotated with the defaults and with
+"""The feature-poor tables of docs/research/results-log.md (issue #22): small grey versions of
+the RTAB-Map samples, our sample logs and Lip6 Outdoor, annotated with the defaults and with
 `--no-verify --method seqslam`, scored against each one's ground-truth matrix.
 
 Each source is shrunk to each size (tools/loggen/shrink_log.py, area-averaged grey, a ROS 2 MCAP of
@@ -18,11 +18,12 @@ T` (the size they are enlarged to: feature_image_max_side and image_max_side), a
 ideas tried for 64x32: `--min-inliers K` and `--runs seqslam-verified` (SeqSLAM's decisions,
 checked).
 
-    python tools/feature_poor_table.py                            # RTAB-Map and samples, ~2 min
-    python tools/feature_poor_table.py --datasets lip6 --sizes 64x32,128x64
-    python tools/feature_poor_table.py --dark 0.25                # the dark version
-    python tools/feature_poor_table.py --sizes 160x120,192x144 --enlarge-below 0 --runs defaults
-    python tools/feature_poor_table.py --datasets none --log /tmp/s/season.ros2.mcap --sizes 64x32
+    python -m reproduce.feature_poor_table                            # RTAB-Map and samples, ~2 min
+    python -m reproduce.feature_poor_table --datasets lip6 --sizes 64x32,128x64
+    python -m reproduce.feature_poor_table --dark 0.25                # the dark version
+    python -m reproduce.feature_poor_table --sizes 160x120,192x144 --enlarge-below 0 --runs defaults
+    python -m reproduce.feature_poor_table --datasets none --log /tmp/s/season.ros2.mcap \\
+        --sizes 64x32
 """
 
 from __future__ import annotations

@@ -8,9 +8,9 @@ re-reads of `annotate` (`LogFrameReader`, 2 threads, the default feature cache) 
 process. With --compare,
 each run of this package is followed by the same run of each other package, --repeat times.
 
-    python tools/bench_verification.py                                   # the 1-hour log
+    python -m bench.verification                                   # the 1-hour log
     git archive HEAD~1 doseqslam_logs schemas | tar -x -C /tmp/d_prev
-    python tools/bench_verification.py --compare /tmp/d_prev --repeat 2
+    python -m bench.verification --compare /tmp/d_prev --repeat 2
 
 Columns: wall and CPU seconds of the stage; frame pairs checked; frames re-read; load, features
 and pairs: seconds summed over the threads (`VerificationStats`); accepted pairs and a hash of
@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 HOUR = Path("/tmp/hour/hour.ros2.mcap")
 COLUMNS = (
     "version",
@@ -130,7 +130,7 @@ def main() -> None:
         child(args.child)
         return
     if not args.log.exists():
-        raise SystemExit(f"{args.log} not found (tools/bench_annotate.py says how to make it)")
+        raise SystemExit(f"{args.log} not found (tools/bench/annotate.py says how to make it)")
     cache = args.cache or Path(tempfile.gettempdir()) / f"{args.log.name}.decisions.pkl"
     if not cache.exists():
         print(f"caching the detector's decisions of {args.log} in {cache} ...", file=sys.stderr)

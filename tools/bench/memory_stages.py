@@ -13,7 +13,7 @@ prints, as JSON lines:
 Divide two runs' figures (e.g. 10 and 20 minutes) by their frame counts' difference to get the
 bytes per frame of each component.
 
-    PYTHONPATH=. python tools/memory_stages.py /tmp/hour/hour.ros2.mcap --minutes 10 -o /tmp/o.mcap
+    python -m bench.memory_stages /tmp/hour/hour.ros2.mcap --minutes 10 -o /tmp/o.mcap
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""The verified-results table of docs/results.md: raw and verified figures per dataset, method
-and ground-truth file.
+"""The verified-results table of docs/research/results-log.md: raw and verified figures per
+dataset, method and ground-truth file.
 
 For each dataset and method `evaluate_folder` runs once (what `evaluate --images` runs: the
 verified defaults, th = VERIFIED_THRESHOLD); every ground-truth file of the dataset is then
@@ -8,8 +8,8 @@ scored on the same decisions (`FolderEvaluation.scored_against`). One markdown r
 (dataset, method, GT file, raw | verified), with the `doseqslam-logs evaluate` command that
 prints the same figures.
 
-    python tools/verified_results.py                       # RTAB-Map and Lip6 Outdoor, ~15 min
-    python tools/verified_results.py --datasets rtabmap    # seconds
+    python -m reproduce.verified_results                       # RTAB-Map and Lip6 Outdoor, ~15 min
+    python -m reproduce.verified_results --datasets rtabmap    # seconds
 """
 
 from __future__ import annotations

@@ -2,25 +2,26 @@
 
 Datasets (tuning sets only; Lip6 Outdoor is held out and is not run here):
 
-    python tools/bench_place_search.py rtabmap                      # ~10 s
-    python tools/bench_place_search.py log sample_logs/drive_loops.ros2.mcap \\
+    python -m bench.place_search rtabmap                      # ~10 s
+    python -m bench.place_search log sample_logs/drive_loops.ros2.mcap \\
         --gt sample_logs/drive_loops.gt.npz                        # ~1 minute
-    python tools/bench_place_search.py log /tmp/hour/hour.ros2.mcap --gt-topic /ground_truth/pose \\
+    python -m bench.place_search log /tmp/hour/hour.ros2.mcap --gt-topic /ground_truth/pose \\
         --radius 2 --max-heading 20 --min-travel 20 --minutes 20   # annotate + evaluate
-    python tools/bench_place_search.py cost --sizes 25000,250000    # detector alone, ~10 min
+    python -m bench.place_search cost --sizes 25000,250000    # detector alone, ~10 min
 
 Each run annotates with the verified defaults (`verified_detector_parameters`) and
 `place_search` set to each mode (plus any --set NAME=VALUE), then scores the accepted pairs.
 The figures are `evaluate`'s verified ones (R@P100, and the revisit coverage: of the 1-s and
 5-s windows holding a ground-truth revisit, the share holding a true accepted pair). `cost`
 times the detector alone on a synthetic route driven lap after lap (the `Route` of
-tools/bench_place_index.py), index mode only (full mode is quadratic), CPU time per frame over
+tools/bench/place_index.py), index mode only (full mode is quadratic), CPU time per frame over
 the frames after each size.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -28,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tomllib
 
 from doseqslam_logs.detector import DOSeqSLAM, PreparedFrame
 from doseqslam_logs.detector.params import Parameters
@@ -39,7 +39,12 @@ from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.sources import open_source
 from doseqslam_logs.verification.params import verified_detector_parameters
 
-REPO = Path(__file__).resolve().parents[1]
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
+
+REPO = Path(__file__).resolve().parents[2]
 RTABMAP = REPO.parent / "shared" / "data" / "rtabmap_samples_loop"
 MODES = ("full", "index")
 
@@ -141,7 +146,7 @@ class EveryN:
 
 
 def run_cost(sizes: list[int], measure: int, sequence: int) -> None:
-    from bench_place_index import Route
+    from bench.place_index import Route
 
     route = Route(places=5000)
     tables = route.tables()

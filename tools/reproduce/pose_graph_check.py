@@ -1,5 +1,5 @@
 """The pose-graph round trip that tests/test_pose_graph.py asserts on and
-tools/pose_graph_table.py tabulates: annotate, export g2o, optimize with GTSAM, ATE.
+tools/reproduce/pose_graph_table.py tabulates: annotate, export g2o, optimize with GTSAM, ATE.
 
 The error is the ATE: RMSE of the vertex positions against the true poses at the same times,
 after the best rigid alignment (rotation and translation, no scale; Umeyama), as `evo_ape`

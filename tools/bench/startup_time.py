@@ -6,8 +6,8 @@ Issue #40 item 6: `--version`, `--help`, a usage error and `info LOG` should tak
 through `doseqslam_logs.cli.main`. Wall time of a fresh process, so the figures move with the
 machine's load: compare runs made one after the other.
 
-    python tools/startup_time.py                      # the doseqslam-logs beside python
-    python tools/startup_time.py --command /other/venv/bin/doseqslam-logs --runs 10
+    python -m bench.startup_time                      # the doseqslam-logs beside python
+    python -m bench.startup_time --command /other/venv/bin/doseqslam-logs --runs 10
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "drive_loops.ros2.mcap"
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_logs" / "drive_loops.ros2.mcap"
 
 # name -> (arguments, the exit code the command must end with)
 CASES: dict[str, tuple[list[str], int]] = {

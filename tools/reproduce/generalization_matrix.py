@@ -19,9 +19,9 @@ each with --seeds seeds. Every cell's log is generated (tools/loggen/make_sample
 its ground truth: verified TP, FP, precision, R@P100 and the share of 1-s and 5-s revisit
 windows with a true loop closure. One row per log, then a summary line.
 
-    python tools/generalization_matrix.py                       # the whole matrix (hours)
-    python tools/generalization_matrix.py --axes parking,rate --seeds 1
-    python tools/generalization_matrix.py --max-minutes 5 -- --odometry-topic none
+    python -m reproduce.generalization_matrix                       # the whole matrix (hours)
+    python -m reproduce.generalization_matrix --axes parking,rate --seeds 1
+    python -m reproduce.generalization_matrix --max-minutes 5 -- --odometry-topic none
 
 It is a benchmark, not a test: tests/test_motion_rule.py runs a parked cell in the slow tier.
 """

@@ -5,8 +5,8 @@ Frames are synthetic: a camera window slides along a textured panorama that wrap
 features track (sequences form) and places recur every lap (loop closures). Each size runs in
 its own process so that its peak resident memory is its own.
 
-    python tools/bench_detector.py                      # 1k, 10k, 50k frames, uint8 SAD
-    python tools/bench_detector.py --frames 1000,10000 --precision uint8,float32
+    python -m bench.detector                      # 1k, 10k, 50k frames, uint8 SAD
+    python -m bench.detector --frames 1000,10000 --precision uint8,float32
 """
 
 from __future__ import annotations

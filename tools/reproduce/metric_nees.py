@@ -8,7 +8,7 @@ covariance's metric: 6 degrees of freedom for a PnP edge, median 5.35 when the c
 right; 3 for the rotation block, median 2.37) and its errors are summarised per method, median
 / 95th percentile. `--verbose` prints one line per edge, worst translation error first.
 
-    PYTHONPATH=$PWD python tools/metric_nees.py ANNOTATED.mcap ... [--verbose]
+    python -m reproduce.metric_nees ANNOTATED.mcap ... [--verbose]
 """
 
 from __future__ import annotations

@@ -4,12 +4,13 @@
 For the three generated drifting drives (seeds 29, 2, 20, made like the test's) and the three
 committed sample drives: annotate with the command's defaults, export `--format g2o
 --odometry-topic /odom`, then the round trip tests/test_pose_graph.py asserts on
-(tools/pose_graph_check.py: readG2o, a tight prior on the first pose, Levenberg-Marquardt, ATE
-after rigid alignment against /ground_truth/pose: plain least squares), and the `optimize`
-command's optimization of the same graph (robust loop edges, outlier check; ATE and loop
-edges rejected). A second table injects `--wrong N` wrong loop edges (random vertex pairs more
-than 15 m apart) into each graph and compares plain least squares, each kernel alone, and each
-kernel with the outlier check. Needs the `gtsam` extra. A few minutes.
+(tools/reproduce/pose_graph_check.py: readG2o, a tight prior on the first pose,
+Levenberg-Marquardt, ATE after rigid alignment against /ground_truth/pose: plain least
+squares), and the `optimize` command's optimization of the same graph (robust loop edges,
+outlier check; ATE and loop edges rejected). A second table injects `--wrong N` wrong loop
+edges (random vertex pairs more than 15 m apart) into each graph and compares plain least
+squares, each kernel alone, and each kernel with the outlier check. Needs the `gtsam` extra. A
+few minutes.
 
 `--metric` prints the table of issue #20 instead: for the same drives plus a drifting drive
 with an aligned depth topic (`--depth`), each loop-edge model's error against the true
@@ -30,10 +31,10 @@ calibrated from the loop edges"): on the calibration drives (seeds 5, 7, 13, 17,
 samples, the ATE of the metric and the oracle graphs with the odometry as stated and
 calibrated, the loop edges the outlier check rejected, and the bias and scale found.
 
-    python tools/pose_graph_table.py [--wrong 5]
-    python tools/pose_graph_table.py --metric
-    python tools/pose_graph_table.py --odometry-weights
-    python tools/pose_graph_table.py --calibration
+    python -m reproduce.pose_graph_table [--wrong 5]
+    python -m reproduce.pose_graph_table --metric
+    python -m reproduce.pose_graph_table --odometry-weights
+    python -m reproduce.pose_graph_table --calibration
 """
 
 from __future__ import annotations
@@ -47,7 +48,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-import pose_graph_check as check
 from doseqslam_logs.annotations.reader import AnnotatedLog, read_annotations
 from doseqslam_logs.cli.main import main as cli_main
 from doseqslam_logs.export.base import ExportOptions, OptimizeOptions
@@ -56,8 +56,9 @@ from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph, relative_pose
 from doseqslam_logs.sources.poses import PoseTrack, read_poses
 from loggen import make_sample_logs as gen
+from reproduce import pose_graph_check as check
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 SAMPLES = ROOT / "sample_logs"
 COMMITTED = [
