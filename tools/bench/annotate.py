@@ -146,9 +146,9 @@ def measure_annotate(
         span = _frame_span_s(first, last, frames)
     stages = dict(getattr(times, "stage_seconds", {}))  # older versions lack it
     stages["detector"] = times.wall_time_s
-    verification = getattr(result, "verification", None)
-    verify_s = getattr(verification, "wall_s", 0.0) if verification is not None else 0.0
-    if verification is not None:
+    verified = getattr(result, "verification", None)
+    verify_s = getattr(verified, "wall_s", 0.0) if verified is not None else 0.0
+    if verified is not None:
         stages["verify"] = verify_s
     # The rest: hashing the input, writing the output.
     stages["write"] = wall - times.wall_time_s - verify_s
@@ -328,7 +328,7 @@ def plan(args: argparse.Namespace) -> list[tuple[str, Path, float | None]]:
     if not args.hour.exists():
         print(f"skipping the 1-hour log: {args.hour} is missing; make it with\n  {HOUR_COMMAND}")
         return logs
-    cuts = [float(m) for m in args.minutes.split(",") if m.strip()]
+    cuts: list[float | None] = [float(m) for m in args.minutes.split(",") if m.strip()]
     for minutes in cuts or [None]:
         label = f"{args.hour.name}" if minutes is None else f"{args.hour.name}, {minutes:g} min"
         logs.append((label, args.hour, minutes))

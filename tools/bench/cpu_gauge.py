@@ -36,7 +36,7 @@ def main() -> None:
         topic = pick_image_topic(source, None)
         frames = decoded_frames(source.image_messages(topic), FrameCounts(), "header", "skip")
         images = [shrink(frame.image, 240) for frame in islice(frames, FRAMES)]
-    sift = [cv2.SIFT_create(nfeatures=500) for _ in range(2)]
+    sift = [cv2.SIFT.create(nfeatures=500) for _ in range(2)]
 
     def work(k: int) -> None:
         for image in images[k::2]:

@@ -20,6 +20,7 @@ import time
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 RATE_HZ = 10.0
 FRAME_W, FRAME_H = 160, 120
@@ -28,10 +29,10 @@ STEP_PX = 8
 STAGES = ("preprocess", "features", "segmentation", "sad", "enhance", "trajectory", "association")
 
 
-def panorama(seed: int = 7) -> np.ndarray:
+def panorama(seed: int = 7) -> npt.NDArray[np.uint8]:
     """Multi-scale smooth noise plus rectangles: texture with corners, never repeating."""
     rng = np.random.default_rng(seed)
-    image = np.zeros((FRAME_H, PANORAMA_W), np.float32)
+    image: npt.NDArray[np.float32] = np.zeros((FRAME_H, PANORAMA_W), np.float32)
     for scale in (4, 16, 64):
         noise = rng.normal(size=(FRAME_H // scale + 2, PANORAMA_W // scale + 2)).astype(np.float32)
         image += cv2.resize(noise, (PANORAMA_W, FRAME_H), interpolation=cv2.INTER_CUBIC) * scale
@@ -40,12 +41,16 @@ def panorama(seed: int = 7) -> np.ndarray:
         w, h = (int(v) for v in rng.integers(4, 20, 2))
         image[y : y + h, x : x + w] += float(rng.normal(0, 60))
     image -= image.min()
-    return (image * (255.0 / image.max())).astype(np.uint8)
+    scaled: npt.NDArray[np.float32] = image * (255.0 / image.max())
+    return scaled.astype(np.uint8)
 
 
-def frame_at(pano: np.ndarray, index: int, rng: np.random.Generator) -> np.ndarray:
+def frame_at(
+    pano: npt.NDArray[np.uint8], index: int, rng: np.random.Generator
+) -> npt.NDArray[np.uint8]:
     x = (index * STEP_PX) % (PANORAMA_W - FRAME_W)
-    frame = pano[:, x : x + FRAME_W].astype(np.int16) + rng.integers(-6, 7, (FRAME_H, FRAME_W))
+    noise = rng.integers(-6, 7, (FRAME_H, FRAME_W))
+    frame: npt.NDArray[np.int64] = pano[:, x : x + FRAME_W].astype(np.int16) + noise
     return np.clip(frame, 0, 255).astype(np.uint8)
 
 

@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from doseqslam_logs.pipeline.annotate import AnnotateOptions, StageObserver, annotate_log
+from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.pipeline.stages import StageObserver
 from doseqslam_logs.sources import open_source, pick_image_topic
 
 
@@ -57,7 +58,7 @@ def deep_size(root: object) -> int:
     total = 0
     while stack:
         item = stack.pop()
-        if id(item) in seen or isinstance(item, type | Callable):  # type: ignore[arg-type]
+        if id(item) in seen or isinstance(item, type | Callable):
             continue
         seen.add(id(item))
         total += sys.getsizeof(item)

@@ -154,7 +154,10 @@ def bandwidth_floor(queries: U8, db: U8) -> float:
     return (time.perf_counter() - start) / 5 * 1e3
 
 
-def timed(kernel: Callable[[U8, U8], npt.NDArray[np.int64]], queries: U8, db: U8, repeat: int):
+def timed(
+    kernel: Callable[[U8, U8], npt.NDArray[np.int64]], queries: U8, db: U8, repeat: int
+) -> tuple[npt.NDArray[np.int64] | None, float, float]:
+    """The kernel's rows (None when `repeat` is 0) and its best wall and CPU ms per row."""
     best_wall = best_cpu = float("inf")
     out = None
     for _ in range(repeat):
@@ -235,9 +238,9 @@ def main() -> None:
     print("|---|---|---|")
     base = None
     for chunk in (1 << 20, 1 << 15):
-        ms, out = enhancement_rows(args.frames, chunk, args.repeat)
-        base = out if base is None else base
-        print(f"| {chunk:,} | {ms:.2f} | {np.array_equal(out, base)} |")
+        ms, enhanced = enhancement_rows(args.frames, chunk, args.repeat)
+        base = enhanced if base is None else base
+        print(f"| {chunk:,} | {ms:.2f} | {np.array_equal(enhanced, base)} |")
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from statistics import median
+from typing import Any
 
 import doseqslam_logs.detector.segmentation as segmentation
 from doseqslam_logs.annotations.reader import read_annotations
@@ -167,7 +168,7 @@ class Variant:
 def run(
     log: Path, out: Path, source: Source, kind: str, variant: Variant = Variant()
 ) -> tuple[AnnotateResult, Evaluation]:
-    kappa = {} if source.kappa_s is None else {"kappa_s": source.kappa_s}
+    kappa: dict[str, Any] = {} if source.kappa_s is None else {"kappa_s": source.kappa_s}
     if kind in ("defaults", "--method seqslam"):
         method = "doseqslam" if kind == "defaults" else "seqslam"
         params = verified_detector_parameters(method=method, **variant.detector(), **kappa)
