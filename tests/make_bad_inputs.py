@@ -1,12 +1,12 @@
 """Build the corpus of bad inputs that docs/robustness.md describes (issue #8).
 
-    python tests/make_bad_inputs.py OUT_DIR [--shared-data DIR]
+    PYTHONPATH=tools python tests/make_bad_inputs.py OUT_DIR [--shared-data DIR]
 
 Every case is made from real data: RTAB-Map camera frames (real JPEGs) written into small logs
-with tools/camera_log_writers.py, or copies of the real bags and MCAP files in ../shared/data,
-then damaged the way fleet logs get damaged (cut short, bit rot, clocks that jump, ...). Nothing
-here is committed as a binary: the corpus is rebuilt in a second or two, byte for byte the same
-each time (fixed stamps, fixed damage offsets, deterministic writers).
+with tools/loggen/camera_log_writers.py, or copies of the real bags and MCAP files in
+../shared/data, then damaged the way fleet logs get damaged (cut short, bit rot, clocks that
+jump, ...). Nothing here is committed as a binary: the corpus is rebuilt in a second or two,
+byte for byte the same each time (fixed stamps, fixed damage offsets, deterministic writers).
 
 `make_corpus(out_dir)` returns {case name: path}; `CASES` says in one line what each one is.
 """
@@ -27,11 +27,11 @@ import cv2
 import numpy as np
 from mcap.reader import make_reader
 
+from loggen import camera_log_writers as clw
+
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
-sys.path.insert(0, str(REPO / "tools"))
 
-import camera_log_writers as clw  # noqa: E402 - tools/ is not a package
 
 SHARED_DATA = Path(os.environ.get("DOSEQSLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
 RTABMAP_IMAGES = "rtabmap_samples_loop/images"

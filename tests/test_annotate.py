@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import hashlib
-import sys
+import itertools
 from pathlib import Path
 
 import pytest
@@ -15,12 +15,7 @@ from doseqslam_logs.detector import Parameters, make_detector
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.pipeline.replay import replay
 from doseqslam_logs.sources.image_folder import folder_frames, list_images
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-
-import itertools
-
-import pack_image_folder
+from loggen import pack_image_folder
 
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 

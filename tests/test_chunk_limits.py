@@ -12,11 +12,11 @@ from __future__ import annotations
 import io
 import json
 import struct
-import sys
 import tracemalloc
 import zlib
 from pathlib import Path
 
+import make_bad_inputs as bad
 import pytest
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
@@ -29,9 +29,6 @@ from doseqslam_logs.errors import ExitCode
 from doseqslam_logs.sources import chunk_limits
 from doseqslam_logs.sources.mcap_source import McapSource
 from doseqslam_logs.sources.salvage import SalvageReport, salvage_mcap
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import make_bad_inputs as bad
 
 TEST_CAP = 1 << 20
 BOMB_BYTES = 4 << 20  # what the bomb chunk really decompresses to: 4 x the test cap

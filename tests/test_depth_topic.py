@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -36,12 +35,11 @@ from doseqslam_logs.sources.depth import (
 )
 from doseqslam_logs.sources.images import RAW_SIZE_MISMATCH, TOO_LARGE
 from doseqslam_logs.sources.poses import read_poses
+from loggen import camera_log_writers as clw
+from loggen import make_sample_logs as gen
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
 
-import camera_log_writers as clw  # noqa: E402
-import make_sample_logs as gen  # noqa: E402
 
 IMAGE, DEPTH = "/camera/image/compressed", "/camera/depth/image"
 DRIVE = gen.Config(
@@ -416,7 +414,7 @@ def test_the_option_is_recorded_only_when_on(tmp_path: Path) -> None:
     config = replace(DRIVE, depth_encoding="16UC1")
     line = gen.command_line(config, str(tmp_path))
     assert line.endswith("--depth --depth-encoding 16UC1")
-    args = gen._parser().parse_args(line.split()[2:])
+    args = gen._parser().parse_args(line.removeprefix(gen.COMMAND).split())
     assert gen._config(args) == config
     assert "--depth" not in gen.command_line(replace(DRIVE, depth=False))
     with pytest.raises(SystemExit):

@@ -44,7 +44,7 @@ SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 LOG = SAMPLES / "drive_loops.ros2.mcap"
 GT = SAMPLES / "drive_loops.gt.npz"
 POSES = "/ground_truth/pose"
-# How tools/make_sample_logs.py made the committed ground truth (sample_logs/README.md).
+# How tools/loggen/make_sample_logs.py made the committed ground truth (sample_logs/README.md).
 SAMPLE_GT = ["--radius", "2", "--max-heading", "20", "--min-travel", "20"]
 
 

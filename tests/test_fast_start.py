@@ -3,7 +3,7 @@
 OpenCV, faiss and SciPy took about 1 s to import, before any command could even print its
 version: now only the stages that use them import them. Checked by what a fresh interpreter
 has imported after the command, not by wall time (a loaded machine would make that flaky);
-`tools/startup_time.py` prints the times.
+`tools/bench/startup_time.py` prints the times.
 """
 
 from __future__ import annotations
@@ -57,8 +57,17 @@ def imported_after(argv: list[str] | None, cwd: Path) -> tuple[int | None, list[
         (["annotate"], 2),  # required arguments missing
         (["annotate", str(SAMPLE), "-o", "out.mcap", "--no-such-option"], 2),
         (["evaluate", "--help"], 0),
+        (["to-bag", "--help"], 0),
     ],
-    ids=["import", "--version", "--help", "annotate", "unknown option", "evaluate --help"],
+    ids=[
+        "import",
+        "--version",
+        "--help",
+        "annotate",
+        "unknown option",
+        "evaluate --help",
+        "to-bag --help",
+    ],
 )
 def test_parsing_the_arguments_imports_nothing_heavy(
     argv: list[str] | None, code: int | None, tmp_path: Path

@@ -1,13 +1,12 @@
 """Issue #22: a run on frames too small or too poor in features never looks like a run that
 found nothing, and small frames degrade to something that works. The logs are built here from
 a committed sample log, shrunk to the 64x32 and 128x64 grey frames of thumbnail cameras, and
-darkened where a test needs frames that stay feature-poor (tools/shrink_log.py)."""
+darkened where a test needs frames that stay feature-poor (tools/loggen/shrink_log.py)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 from pathlib import Path
 
 import cv2
@@ -37,12 +36,11 @@ from doseqslam_logs.pipeline.feature_health import (
     feature_health,
 )
 from doseqslam_logs.verification import DEFAULT_VERIFICATION, extract_features, verify_pair
+from loggen import shrink_log
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "sample_logs"
-sys.path.insert(0, str(REPO / "tools"))
 
-import shrink_log  # noqa: E402
 
 SEGMENTATION_WARNING = "WARNING: feature-poor frames: 240 of 240 frames (100 %)"
 CHECKS_WARNING = "verification could not check"

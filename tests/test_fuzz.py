@@ -3,7 +3,7 @@
 One fuzz target per container format and per image payload format (issue #21, item 6).
 Hypothesis flips bits, cuts, inserts, duplicates ranges and plants huge length fields in real
 logs: a small ROS 2 MCAP of RTAB-Map frames and a Foxglove one of raw frames, both written with
-tools/camera_log_writers.py; the real aruco_marker ROS 1 bag and the real rerun rosbag2 MCAP
+tools/loggen/camera_log_writers.py; the real aruco_marker ROS 1 bag and the real rerun rosbag2 MCAP
 from shared/data; a rosbag2 .db3 (SQLite) of RTAB-Map frames. The payload targets damage the
 image inside a valid ROS 2 MCAP instead: JPEG and PNG bytes, and raw images whose data,
 width, height, step and encoding fields are mutated. Each mutant goes through open_source
@@ -27,7 +27,6 @@ import os
 import shutil
 import signal
 import struct
-import sys
 import tempfile
 from collections import Counter
 from collections.abc import Iterator
@@ -37,6 +36,7 @@ from types import FrameType
 from typing import Any
 
 import cv2
+import make_bad_inputs as corpus
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -47,10 +47,7 @@ from doseqslam_logs.errors import DoseqslamError, ExitCode
 from doseqslam_logs.sources import open_source
 from doseqslam_logs.sources.images import decode_gray
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import make_bad_inputs as corpus
-
-clw = corpus.clw  # tools/camera_log_writers.py, importable once corpus put tools/ on the path
+clw = corpus.clw  # tools/loggen/camera_log_writers.py
 Item = corpus.Item
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 

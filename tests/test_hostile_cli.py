@@ -15,18 +15,15 @@ import os
 import re
 import stat
 import struct
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+import make_bad_inputs
 import numpy as np
 import pytest
 
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ExitCode
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import make_bad_inputs
 
 pytestmark = pytest.mark.slow  # the pipeline runs
 

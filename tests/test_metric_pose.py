@@ -4,7 +4,6 @@ and camera poses, projected to pixels with noise; every rung and its refusals.""
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -587,11 +586,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.mark.slow
 def test_on_drive_loops_metric_edges_beat_the_placeholder(tmp_path: Path) -> None:
-    """tools/metric_edges.py on the committed drive_loops, SIFT for the metric fit (measured:
-    46 of 50 pairs metric, median translation error 0.105 m against the placeholder's 0.41 m;
-    docs/export.md); the bounds leave room for other OpenCV versions."""
-    sys.path.insert(0, str(REPO / "tools"))
-    import metric_edges
+    """tools/reproduce/metric_edges.py on the committed drive_loops, SIFT for the metric fit
+    (measured: 46 of 50 pairs metric, median translation error 0.105 m against the
+    placeholder's 0.41 m; docs/export.md); the bounds leave room for other OpenCV versions."""
+    from reproduce import metric_edges
 
     log = REPO / "sample_logs" / "drive_loops.ros2.mcap"
     results = metric_edges.measure_log(

@@ -2,7 +2,7 @@
 rung the log allows, and the exports and `optimize` use it.
 
 Errors are measured against `/ground_truth/pose` (body poses of the camera, turned into
-optical axes with OPTICAL_TO_BODY, as tools/metric_edges.py does).
+optical axes with OPTICAL_TO_BODY, as tools/reproduce/metric_edges.py does).
 """
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import sys
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -34,11 +33,10 @@ from doseqslam_logs.export.pose_graph import (
 )
 from doseqslam_logs.sources.poses import read_poses
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
+from loggen import make_sample_logs as gen
+from reproduce import pose_graph_check as check
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
-import make_sample_logs as gen  # noqa: E402
-import pose_graph_check as check  # noqa: E402
 
 LOOPS = REPO / "sample_logs" / "drive_loops.ros2.mcap"
 IMAGE = "/camera/image/compressed"

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from doseqslam_logs.verification.motion import (
     left_by_images,
 )
 from doseqslam_logs.verification.summary import verification_summary
+from loggen import make_sample_logs as gen
 
 FRAME_NS = 10**9  # 1 Hz: every candidate is checked (stride 1)
 
@@ -145,8 +145,6 @@ def test_motion_parameters_are_validated() -> None:
 # -- generated parked drives (the generalization matrix's parking cells, shortened) ------------
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
-import make_sample_logs as gen  # noqa: E402
 
 # The figure eight: 10 Hz, 320x240, parked 90 s mid-drive, long enough (over kappa)
 # for the parked camera to be proposed against its own earlier frames (52 false pairs of 166

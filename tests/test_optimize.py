@@ -3,7 +3,7 @@ outlier check, and the optimized trajectory written back into the log (docs/expo
 "Optimizing the pose graph").
 
 The drifting drive is tests/test_pose_graph.py's (seed 29, odometry 4.4 m off at the end);
-the ATE is tools/pose_graph_check.py's (rigid alignment, as evo_ape --align).
+the ATE is tools/reproduce/pose_graph_check.py's (rigid alignment, as evo_ape --align).
 """
 
 from __future__ import annotations
@@ -29,12 +29,11 @@ from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph
 from doseqslam_logs.sources import open_source
 from doseqslam_logs.sources.poses import PoseTrack, read_poses
+from reproduce import pose_graph_check as check
 
 gtsam = pytest.importorskip("gtsam")
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))  # the drifting drive and the ATE, shared with the table
-import pose_graph_check as check  # noqa: E402
 
 SAMPLES = REPO / "sample_logs"
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
@@ -250,7 +249,7 @@ def test_the_calibrated_odometry_brings_the_metric_graph_near_the_oracle(
     metric edges leave less to calibrate: 0.096 / 0.095 m calibrated, 0.101 to 0.117 m as
     stated depending on the machine (GTSAM's floating-point kernels): calibration takes 5 to
     18 % off, and never adds."""
-    from pose_graph_table import metric_graph_and_truth, oracle_edges
+    from reproduce.pose_graph_table import metric_graph_and_truth, oracle_edges
 
     _, graph, truth = metric_graph_and_truth(drifting)
     oracle = dataclasses.replace(graph, loop_edges=oracle_edges(graph, truth))

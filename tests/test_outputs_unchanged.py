@@ -5,15 +5,14 @@ depend on floating-point kernels, so they are compared on one machine only)."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
+from reproduce import compare_versions
 
-import compare_versions  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
+
 
 # The last commit whose outputs this version reproduces byte for byte, in both modes. Move it
 # forward only with a change that alters the outputs on purpose, and say so in that commit.

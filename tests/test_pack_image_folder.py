@@ -1,4 +1,5 @@
-"""tools/pack_image_folder.py: the RTAB-Map folder packed into every container, read back raw.
+"""tools/loggen/pack_image_folder.py: the RTAB-Map folder packed into every container, read
+back raw.
 
 The logs are read with the plain libraries (mcap + decoder factories, rosbags AnyReader), so the
 check does not depend on the package's own readers.
@@ -7,6 +8,7 @@ check does not depend on the package's own readers.
 from __future__ import annotations
 
 import itertools
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,11 +21,11 @@ from mcap_ros2.decoder import DecoderFactory as Ros2Decoders
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
-sys.path.insert(0, str(TOOLS))
+from loggen import camera_log_writers as clw
+from loggen import pack_image_folder
 
-import camera_log_writers as clw  # noqa: E402
-import pack_image_folder  # noqa: E402
+TOOLS = Path(__file__).resolve().parents[1] / "tools"  # loggen's folder, for its command line
+
 
 Image = tuple[int, int, str, bytes]  # header stamp ns, log time ns, format, data
 
@@ -92,9 +94,12 @@ def test_packing_twice_gives_the_same_bytes(folder, packed, tmp_path) -> None:
 
 
 def test_command_line_packs_at_the_requested_rate(folder, tmp_path) -> None:
-    command = [sys.executable, str(TOOLS / "pack_image_folder.py"), str(folder)]
+    command = [sys.executable, "-m", "loggen.pack_image_folder", str(folder)]
     command += ["--fps", "2", "--out", str(tmp_path), "--formats", "foxglove"]
-    subprocess.run(command, check=True, capture_output=True, timeout=120)
+    path = os.pathsep.join(filter(None, [str(TOOLS), os.environ.get("PYTHONPATH")]))
+    # Not from the repository root: `-m` puts the working folder on sys.path.
+    env = {**os.environ, "PYTHONPATH": path}
+    subprocess.run(command, check=True, capture_output=True, timeout=120, env=env, cwd=tmp_path)
     images = read_images(clw.output_path(tmp_path, folder.name, "foxglove"))
     assert [data for _, _, _, data in images] == originals(folder)
     assert {b[0] - a[0] for a, b in itertools.pairwise(images)} == {500_000_000}

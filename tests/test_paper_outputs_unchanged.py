@@ -7,15 +7,14 @@ so that it runs beside the defaults' comparison on another worker."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
+from reproduce import compare_versions
 
-import compare_versions  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
+
 
 # --no-verify's bytes: untouched by every verification change since.
 PAPER_BYTES_REFERENCE = "b49b5b3"

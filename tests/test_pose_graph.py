@@ -1,9 +1,9 @@
 """A real pose-graph round trip: GTSAM loads the g2o export, optimizes it, and the trajectory
 gets closer to the ground truth (docs/export.md has the measured numbers).
 
-The error is the ATE after a rigid alignment (tools/pose_graph_check.py): the odometry frame
-starts at the robot's first pose while the ground truth lives in the map frame, so some
-alignment is needed; the rigid one is the standard.
+The error is the ATE after a rigid alignment (tools/reproduce/pose_graph_check.py): the
+odometry frame starts at the robot's first pose while the ground truth lives in the map frame,
+so some alignment is needed; the rigid one is the standard.
 
 Two drives, both annotated with the command's defaults (geometric verification on):
 
@@ -15,7 +15,6 @@ Two drives, both annotated with the command's defaults (geometric verification o
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,14 +25,13 @@ from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import verified_body_rotation
 from doseqslam_logs.sources.poses import read_poses
+from reproduce import pose_graph_check as check
 
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 
 gtsam = pytest.importorskip("gtsam")
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))  # the round trip, shared with tools/pose_graph_table.py
-import pose_graph_check as check  # noqa: E402
 
 DRIVE_LOOPS = REPO / "sample_logs" / "drive_loops.ros2.mcap"
 

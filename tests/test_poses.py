@@ -27,7 +27,7 @@ DRIVE_LOOPS = {
     "ros1 bag": SAMPLES / "drive_loops.bag",
     "rosbag2 sqlite3": SAMPLES / "drive_loops.rosbag2",
 }
-ODOM_POSE_VARIANCES = [0.05, 0.05, 1e6, 1e6, 1e6, 0.01]  # tools/camera_log_writers.py
+ODOM_POSE_VARIANCES = [0.05, 0.05, 1e6, 1e6, 1e6, 0.01]  # tools/loggen/camera_log_writers.py
 
 
 def _true_poses() -> dict[str, np.ndarray]:

@@ -9,11 +9,11 @@ from __future__ import annotations
 import json
 import re
 import struct
-import sys
 import zlib
 from pathlib import Path
 
 import cv2
+import make_bad_inputs as bad
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -23,9 +23,6 @@ from doseqslam_logs.errors import ExitCode, ImageDecodeError
 from doseqslam_logs.sources.base import ImageMessage
 from doseqslam_logs.sources.image_header import DEFAULT_MAX_PIXELS, claimed_size
 from doseqslam_logs.sources.images import TOO_LARGE, decode_gray
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import make_bad_inputs as bad
 
 # --- inputs -----------------------------------------------------------------------------------
 

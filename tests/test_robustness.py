@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
+import make_bad_inputs
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -38,9 +39,6 @@ from doseqslam_logs.pipeline.decode import (
 from doseqslam_logs.sinks.atomic import atomic_output, remove_stale_temps, scratch_file
 from doseqslam_logs.sources.base import ImageMessage
 from doseqslam_logs.sources.images import decode_gray
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import make_bad_inputs
 
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 

@@ -1,4 +1,5 @@
-"""tools/make_sample_logs.py and tools/camera_log_writers.py: determinism, ground truth, images.
+"""tools/loggen/make_sample_logs.py and camera_log_writers.py: determinism, ground truth,
+images.
 
 The committed sample logs are opened here with the plain libraries (mcap + decoder factories,
 rosbags AnyReader), not with the package's own sources, so a bug shared by the package's
@@ -11,7 +12,6 @@ import io
 import itertools
 import json
 import math
-import sys
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -27,12 +27,12 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from scipy import sparse
 
+from loggen import camera_log_writers as clw
+from loggen import make_sample_logs as gen
+
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "sample_logs"
-sys.path.insert(0, str(REPO / "tools"))
 
-import camera_log_writers as clw  # noqa: E402
-import make_sample_logs as gen  # noqa: E402
 
 STEMS = ("drive_loops", "drive_parked", "drive_varrate")
 SAMPLE_LOGS = {
@@ -239,7 +239,7 @@ def test_odometry_drifts_a_little() -> None:
 
 def test_sample_command_lines_reproduce_the_sample_configs() -> None:
     for config in gen.SAMPLES:
-        argv = gen.command_line(config, "sample_logs").split()[2:]
+        argv = gen.command_line(config, "sample_logs").removeprefix(gen.COMMAND).split()
         args = gen._parser().parse_args(argv)
         assert gen._config(args) == config
 

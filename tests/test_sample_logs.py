@@ -20,14 +20,13 @@ from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.pipeline.decode import FrameCounts, decoded_frames
 from doseqslam_logs.pipeline.replay import replay
 from doseqslam_logs.sources import open_source, pick_image_topic
+from loggen import compare_sample_logs as compare_samples
+from loggen import make_sample_logs as generator
+from loggen import other_processor
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "sample_logs"
-sys.path.insert(0, str(REPO / "tools"))
 
-import compare_sample_logs as compare_samples  # noqa: E402
-import make_sample_logs as generator  # noqa: E402
-import other_processor  # noqa: E402
 
 pytestmark = pytest.mark.slow  # the pipeline runs in its fixtures (pyproject: markers)
 
@@ -104,12 +103,14 @@ def regenerated_elsewhere(tmp_path_factory: pytest.TempPathFactory) -> Path:
     if not env:
         pytest.skip("no dispatched SIMD to switch off on this processor")
     out = tmp_path_factory.mktemp("elsewhere")
-    command = [sys.executable, str(REPO / "tools" / "make_sample_logs.py"), "--samples"]
+    command = [sys.executable, "-m", "loggen.make_sample_logs", "--samples"]
+    path = os.pathsep.join(filter(None, [str(REPO / "tools"), os.environ.get("PYTHONPATH")]))
     subprocess.run(
         [*command, "--out", str(out)],
         check=True,
         capture_output=True,
-        env={**os.environ, **env},
+        env={**os.environ, **env, "PYTHONPATH": path},
+        cwd=out,  # not the repository root: `-m` puts the working folder on sys.path
         timeout=600,
     )
     return out

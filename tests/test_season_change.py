@@ -1,7 +1,7 @@
 """Issue #35 item 4: strong appearance change at very low resolution. A generated drive seen in
-another season from its middle on (tools/make_sample_logs.py --season-change), with stops
+another season from its middle on (tools/loggen/make_sample_logs.py --season-change), with stops
 longer than kappa (a train standing at stations), shrunk to 64x32 grey without odometry
-(tools/shrink_log.py): the defaults must report no false pair
+(tools/loggen/shrink_log.py): the defaults must report no false pair
 (docs/research/2026-12-06-season-change.md)."""
 
 from __future__ import annotations
@@ -9,7 +9,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -19,12 +18,11 @@ import pytest
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.verification.motion import STATIONARY
+from loggen import make_sample_logs as gen
+from loggen import shrink_log
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
 
-import make_sample_logs as gen  # noqa: E402
-import shrink_log  # noqa: E402
 
 # About 2.4 laps of a 60 m loop in 60 frames: the season changes at a lap boundary.
 SHORT = gen.Config(

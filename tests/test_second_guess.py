@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,11 +17,10 @@ from doseqslam_logs.cli.main import main
 from doseqslam_logs.errors import ParameterError
 from doseqslam_logs.verification import DEFAULT_VERIFICATION
 from doseqslam_logs.verification.stage import SECOND_GUESS_REASON
+from loggen import make_sample_logs as gen
+from reproduce import generalization_matrix as matrix
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
-import generalization_matrix as matrix  # noqa: E402
-import make_sample_logs as gen  # noqa: E402
 
 # The matrix's noise cell (sensor noise sigma 6 grey levels), seed 1: 3 false pairs with one
 # bar for all, each a second guess of 34-52 inliers 2.0-3.5 m from the place; 0 with two bars.

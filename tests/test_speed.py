@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -162,8 +161,7 @@ def test_a_failing_detector_stops_the_reader_and_closes_the_frames() -> None:
 
 
 def test_bench_annotate_measures_decoding_of_the_sample() -> None:
-    sys.path.insert(0, str(REPO / "tools"))
-    import bench_annotate
+    from bench import annotate as bench_annotate
 
     figures = bench_annotate.measure_decode(SAMPLE, None)
     assert figures["frames"] == 240 and figures["log_s"] > 0 and figures["wall_s"] > 0

@@ -1,13 +1,14 @@
 """Issue #19: the JSON schemas use only what Foxglove's and Lichtblick's `parseJsonSchema`
 supports, NaN floats are omitted (NaN is not JSON), and logs written with the previous
 schemas ($ref times, `["number", "null"]` floats written as null) still read back the same.
-The ros1-profile output, which rosbags cannot open, converts to a .bag that it reads."""
+The ros1-profile output, which rosbags cannot open, converts to a .bag that it reads
+(`to-bag`), and any other log is refused naming what converts it."""
 
 from __future__ import annotations
 
 import json
 import math
-import sys
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -22,13 +23,14 @@ from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.annotations.records import LOOP_CLOSURE, SEQUENCE, LoopClosureRecord
 from doseqslam_logs.annotations.schema_files import read_schema
 from doseqslam_logs.cli.main import main
+from doseqslam_logs.errors import OutputError
+from doseqslam_logs.sinks.atomic import atomic_path
 from doseqslam_logs.sinks.encoders import JsonEncoder
 from doseqslam_logs.sinks.mcap_writer import write_annotated_mcap
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
+SAMPLES = REPO / "sample_logs"
 
-import ros1_mcap_to_bag  # noqa: E402
 
 NAMES = ("LoopClosure", "Sequence")
 OURS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
@@ -169,14 +171,21 @@ def test_a_log_written_with_the_previous_schemas_reads_back_the_same(tmp_path: P
     assert any(math.isnan(s.best_score) for s in now.sequences)
 
 
-def test_the_ros1_output_converts_to_a_bag_that_rosbags_reads(tmp_path: Path) -> None:
+def test_the_ros1_output_converts_to_a_bag_that_rosbags_reads(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     output, bag = tmp_path / "annotated.mcap", tmp_path / "annotated.bag"
     assert main(["annotate", str(REPO / "sample_logs" / "drive_loops.bag"), "-o", str(output),
                  "--no-verify"]) == 0  # fmt: skip
     with pytest.raises(AnyReaderError, match="Profile is not ros2"), AnyReader([output]):
         pass  # what rosbags, rosbags-convert and evo say: README.md says so, and what to do
     ours = read_annotations(output).loop_closures
-    assert ros1_mcap_to_bag.main([str(output), str(bag)]) == 0
+    assert main(["to-bag", str(output), "-o", str(bag)]) == 0
+    with output.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None and summary.statistics is not None
+    count, topics = summary.statistics.message_count, len(summary.channels)
+    assert capsys.readouterr().out.endswith(f"{bag}: {count} messages on {topics} topics\n")
     with AnyReader([bag]) as reader:
         topics = {c.topic: c for c in reader.connections}
         assert {"/camera/image/compressed", *OURS} <= set(topics)
@@ -186,15 +195,60 @@ def test_the_ros1_output_converts_to_a_bag_that_rosbags_reads(tmp_path: Path) ->
         (lc.query.index, lc.match.index) for lc in ours
     ]
     written = bag.read_bytes()
-    assert ros1_mcap_to_bag.main([str(output), str(bag)]) == 1  # never replaces a file
+    assert main(["to-bag", str(output), "-o", str(bag)]) == 0  # replaced atomically, the same
     assert bag.read_bytes() == written
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["annotated.bag", "annotated.mcap"]
+    assert main(["to-bag", str(output), "-o", str(output)]) == 6  # never over the input
 
 
-def test_the_bag_conversion_refuses_a_log_that_is_not_ros1(tmp_path: Path) -> None:
-    source, new = tmp_path / "log.mcap", tmp_path / "new.mcap"
-    write_annotated_mcap(source, new, make_annotations(write_json_mcap(source, "foxglove")))
-    assert ros1_mcap_to_bag.main([str(new), str(tmp_path / "out.bag")]) == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.mcap", "new.mcap"]
+@pytest.mark.parametrize(
+    ("log", "code", "said"),
+    [
+        ("foxglove.mcap", 2, "MCAP profile 'foxglove', not 'ros1'"),
+        ("ros1.mcap", 2, "channel /log is not ROS 1 (message encoding 'json')"),
+        ("drive_loops.ros2.mcap", 2, "a ROS 2 MCAP, not ROS 1: rosbags and evo read it as it"),
+        ("drive_loops.rosbag2", 2, "a rosbag2 bag, not a ROS 1 MCAP: `rosbags-convert --src"),
+        ("drive_varrate.bag", 2, "a ROS 1 .bag already"),
+        ("missing.mcap", 3, "missing.mcap: no such file or directory"),
+    ],
+)
+def test_the_bag_conversion_refuses_a_log_that_is_not_ros1(
+    log: str, code: int, said: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for profile in ("foxglove", "ros1"):  # JSON channels, in a ros1-profile file too
+        source, new = folder / f"{profile}.log", folder / f"{profile}.mcap"
+        write_annotated_mcap(source, new, make_annotations(write_json_mcap(source, profile)))
+    path = SAMPLES / log if log.startswith("drive_") else folder / log
+    assert main(["to-bag", str(path), "-o", str(tmp_path / "out.bag")]) == code
+    error = capsys.readouterr().err
+    assert error.startswith("doseqslam-logs: error: ") and said in error
+    assert len(error.splitlines()) == 1
+    if "ROS 2" in said or "rosbag2" in said:  # what does convert it
+        assert f"`rosbags-convert --src {path} --dst OUT.bag`" in error
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]  # nothing written, no temporary
+
+
+def test_the_bag_appears_whole_or_not_at_all(tmp_path: Path) -> None:
+    """atomic_path, for a writer that creates its file itself: a temporary name like
+    atomic_output's (a killed run's file is removed by the next write), nothing left after an
+    interrupt or an error, the final name written only at the end."""
+    final = tmp_path / "out.bag"
+    with pytest.raises(KeyboardInterrupt), atomic_path(final) as temporary:
+        assert re.fullmatch(r"\.out\.bag\.\d+\.[0-9a-f]{8}\.tmp", temporary.name)
+        assert not temporary.exists()
+        temporary.write_bytes(b"half")
+        raise KeyboardInterrupt
+    failed = pytest.raises(OutputError, match=r"out\.bag: cannot write the output: boom")
+    with failed, atomic_path(final) as temporary:
+        temporary.write_bytes(b"half")
+        raise ValueError("boom")
+    assert list(tmp_path.iterdir()) == []
+    with atomic_path(final) as temporary:
+        temporary.write_bytes(b"whole")
+        assert not final.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["out.bag"] and final.read_bytes() == b"whole"
 
 
 def _schemas_of(path: Path) -> list[Any]:

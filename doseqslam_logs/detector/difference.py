@@ -7,7 +7,7 @@ Vectors are stored as float32, or quantized to uint8 (`difference_precision = "u
 patch-normalized value z lies within +-sqrt(63) < 127/16 for 8x8 patches, so
 q = round(16 z) + 128 holds it without clipping, at a step of 1/16 standard deviation. The
 uint8 path computes integer sums with OpenCV's SIMD L1 kernel (`sad_sums_uint8`): 4x less
-memory than float32 and about 30x faster than float32 NumPy (tools/bench_sad.py measures every
+memory than float32 and about 30x faster than float32 NumPy (tools/bench/sad.py measures every
 kernel side by side).
 """
 

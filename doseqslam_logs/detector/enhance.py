@@ -14,7 +14,7 @@ FLAT_WINDOW_STD = 1e-9
 # Rows are enhanced in chunks of about this many elements (at least one row): the float64
 # temporaries of a long sequence against an hour of frames would otherwise take gigabytes, and
 # the few dozen passes over each chunk run 2-3x faster while its temporaries stay in the
-# CPU's cache (256 KB each) than when they spill to memory (tools/bench_sad.py).
+# CPU's cache (256 KB each) than when they spill to memory (tools/bench/sad.py).
 CHUNK_ELEMENTS = 1 << 15
 
 

@@ -112,7 +112,7 @@ def hamming(a: Descriptors, b: Descriptors) -> IntArray:
 
 @dataclass(frozen=True)
 class PlaceIndexParams:
-    """Place index parameters; the defaults are measured by tools/bench_place_index.py.
+    """Place index parameters; the defaults are measured by tools/bench/place_index.py.
 
     radius: a descriptor joins its nearest word when within this many bits, else starts one.
     tables: 16-bit substrings hashed (1..16); fewer is faster and finds fewer words.

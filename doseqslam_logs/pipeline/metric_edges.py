@@ -9,7 +9,7 @@ failed, why, go on the pair's LoopClosure message (`annotations.writer`).
 
 Odometry poses are body poses of the camera (x forward, y left, z up) turned into optical
 axes with `OPTICAL_TO_BODY`: the camera is assumed to look along the body's x axis at the
-pose's origin (no tf is read). Neighbours of a match are chosen as `tools/metric_edges.py`
+pose's origin (no tf is read). Neighbours of a match are chosen as `tools/reproduce/metric_edges.py`
 found best: on each side, the nearest frame whose odometry is at least 1 m, and 2 m, away,
 within NEIGHBOUR_REACH_S of the match. A pair left with the rotation only also gets the query's
 neighbours, chosen the same way, for that rotation's consensus (read only for those pairs).
@@ -78,7 +78,7 @@ METRIC_FEATURES: Final = "sift"
 # At a high frame rate, at most one metric fit per this much query time (module docstring).
 METRIC_INTERVAL_S: Final = 20.0
 # Neighbours of a match: the nearest frame on each side at least each baseline away by the
-# odometry, within this much time of the match (tools/metric_edges.py: 8 frames at 2 Hz).
+# odometry, within this much time of the match (tools/reproduce/metric_edges.py: 8 frames at 2 Hz).
 NEIGHBOUR_BASELINES_M: Final = (1.0, 2.0)
 NEIGHBOUR_REACH_S: Final = 4.0
 # The odometry's error per metre of baseline (metres, degrees), on every axis: what the

@@ -16,7 +16,7 @@ StageCallback = Callable[[str], None]
 
 class StageObserver:
     """Hears a run's stages: the command's progress, the batch workers, the memory probe
-    (tools/memory_stages.py) and the tests watch a run through one of these. Each method
+    (tools/bench/memory_stages.py) and the tests watch a run through one of these. Each method
     does nothing here; a subclass overrides the ones it needs."""
 
     def started(self, stage: str) -> None:

@@ -178,6 +178,31 @@ def atomic_output(final_path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
 
 
 @contextlib.contextmanager
+def atomic_path(final_path: str | os.PathLike[str]) -> Iterator[Path]:
+    """`atomic_output` for a writer that creates its file itself (rosbags' bag writer refuses
+    an existing one): a fresh temporary name beside `final_path`, not yet created, that becomes
+    `final_path` when the block succeeds (fsynced, then renamed), and is removed on any
+    exception. The same checks and error rules as `atomic_output`."""
+    final = Path(final_path)
+    check_output_path(final)
+    remove_stale_temps(final)
+    temporary = temp_name(final)
+    try:
+        yield temporary
+        with temporary.open("rb") as written:
+            os.fsync(written.fileno())
+        check_output_path(final)  # again: it may have appeared while we wrote
+        os.replace(temporary, final)
+    except BaseException as exc:
+        _remove([temporary])
+        if isinstance(exc, DoseqslamError) or not isinstance(exc, Exception):
+            raise
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise OutputError(f"{final}: cannot write the output: {why}") from exc
+    _fsync_directory(final.parent)
+
+
+@contextlib.contextmanager
 def scratch_file(final_path: str | os.PathLike[str]) -> Iterator[Path]:
     """An empty hidden file beside `final_path`, named like its temporary files (so that a
     later run removes it if this process is killed), removed when the block ends."""

@@ -27,8 +27,8 @@ MIN_ACCEPTABLE_INLIERS = 8
 class VerificationParameters:
     """How each loop-closure pair is checked geometrically.
 
-    Defaults were chosen on the tuning sets (the RTAB-Map samples and our sample logs) with
-    tools/sweep_verification.py, never on the held-out Lip6 Outdoor: ORB + MAGSAC was the
+    Defaults were chosen on the tuning sets (the RTAB-Map samples and our sample logs) by a
+    sweep of these parameters, never on the held-out Lip6 Outdoor: ORB + MAGSAC was the
     fastest and, with min_inliers = 30, the only setting family that kept 0 false positives
     under every nearby change of max_features, ratio and threshold; refine_radius = 25 frames
     (25 s at 1 Hz) is where recall stops growing. Frames are shrunk to 320 px: on a 640x480
