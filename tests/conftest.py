@@ -7,7 +7,7 @@ import fcntl
 import hashlib
 import io
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -15,6 +15,19 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 # CI clones the repository beside shared/, so ../shared/data from the repository root.
 SHARED_DATA = Path(os.environ.get("DOSEQSLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def no_progress_lines() -> Iterator[None]:
+    """Off a terminal, a run longer than QUIET_S prints progress lines on stderr: how long a
+    run takes depends on the machine and its load, so in-process runs of the tests never
+    print them (set up before every other fixture, module-scoped ones included;
+    tests/test_progress.py sets QUIET_S itself)."""
+    from doseqslam_logs.cli import progress
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(progress, "QUIET_S", float("inf"))
+        yield
 
 
 @pytest.fixture(scope="session")
