@@ -291,3 +291,27 @@ def _rewrite_ours(src: Path, dst: Path, schemas: dict[str, Any], transform: Tran
             writer.add_attachment(attachment.create_time, attachment.log_time, attachment.name,
                                   attachment.media_type, attachment.data)  # fmt: skip
         writer.finish()  # type: ignore[no-untyped-call]
+
+
+def test_annotate_writes_a_bag_for_a_bag(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log, bag, mcap = SAMPLES / "drive_loops.bag", tmp_path / "out.bag", tmp_path / "out.mcap"
+    assert main(["annotate", str(log), "-o", str(bag), "--no-verify"]) == 0
+    assert capsys.readouterr().out.startswith(f"{bag}: 240 frames")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.bag"]  # no MCAP left beside it
+    assert main(["annotate", str(log), "-o", str(mcap), "--no-verify"]) == 0
+    ours = read_annotations(mcap).loop_closures
+    with AnyReader([bag]) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        closures = [reader.deserialize(raw, c.msgtype)
+                    for c, _, raw in reader.messages([topics[LOOP_CLOSURE.topic]])]  # fmt: skip
+    assert [(m.query_index, m.match_index) for m in closures] == [
+        (lc.query.index, lc.match.index) for lc in ours
+    ]
+    capsys.readouterr()
+    ros2 = SAMPLES / "drive_loops.ros2.mcap"
+    assert main(["annotate", str(ros2), "-o", str(tmp_path / "x.bag")]) == 2  # before the run
+    error = capsys.readouterr().err
+    assert "a .bag output needs a ROS 1 .bag input" in error and len(error.splitlines()) == 1
+    assert not (tmp_path / "x.bag").exists()

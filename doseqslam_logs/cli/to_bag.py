@@ -1,7 +1,7 @@
 """`doseqslam-logs to-bag OUT.mcap -o OUT.bag`: a ROS 1-profile output as a ROS 1 .bag.
 
 rosbags, rosbags-convert and evo refuse a ROS 1-profile MCAP ("Profile is not ros2"); the
-.bag this writes keeps every message's bytes, topic and log time (export/ros1_bag.py,
+.bag this writes keeps every message's bytes, topic and log time (sinks/ros1_bag.py,
 docs/viewers.md).
 """
 
@@ -27,7 +27,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..export.ros1_bag import mcap_to_bag
+    from ..sinks.ros1_bag import mcap_to_bag
 
     result = mcap_to_bag(args.log, args.output)
     print(f"{args.output}: {result.summary}")

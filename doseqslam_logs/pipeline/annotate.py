@@ -29,6 +29,7 @@ from ..errors import (
     OutputError,
     SourceError,
     TimestampError,
+    UsageError,
 )
 from ..sinks.atomic import check_output_path, scratch_file
 from ..sinks.mcap_writer import (
@@ -38,6 +39,7 @@ from ..sinks.mcap_writer import (
     write_annotated_mcap,
 )
 from ..sinks.output_format import OutputFormat
+from ..sinks.ros1_bag import mcap_to_bag
 from ..sinks.visualization import Visualization, read_trajectory, visual_loops
 from ..sources import Log, is_mcap_file, pick_image_topic
 from ..sources.base import Promise, Source
@@ -458,6 +460,8 @@ def annotate_log(
     check_output_path(output)  # before the detector runs, not after
     if log.exists():
         refuse_same_file(log, output)
+    if output.suffix == ".bag" and not options.sidecar:
+        return _annotate_to_bag(log, output, params, options, progress, expected, stage, observer)
     callbacks = _Callbacks(progress, expected, observer_of(stage, observer))
     if not (options.recover and is_mcap_file(log)):
         return _annotate(log, log, output, params, options, callbacks, None)
@@ -480,6 +484,30 @@ def annotate_log(
             # Messages about the recovered copy are about the log, for whoever reads them.
             exc.args = (str(exc).replace(str(repaired), str(log)), *exc.args[1:])
             raise
+
+
+def _annotate_to_bag(
+    log: Path,
+    output: Path,
+    params: Parameters,
+    options: AnnotateOptions,
+    progress: Callable[[int], None] | None,
+    expected: Callable[[int | None], None] | None,
+    stage: StageCallback | None,
+    observer: StageObserver | None,
+) -> AnnotateResult:
+    """annotate_log into a ROS 1 .bag: the annotated MCAP beside it, then that as the .bag
+    (`sinks.ros1_bag`), for a ROS 1 .bag input only (refused before the run otherwise)."""
+    kind = format_of(log)
+    if kind.name != "ros1-bag":
+        raise UsageError(
+            f"{output}: a .bag output needs a ROS 1 .bag input, and {log} is {kind.described}: "
+            "write OUT.mcap (rosbags-convert turns a ROS 2 MCAP into a .bag)"
+        )
+    with scratch_file(output) as annotated:
+        result = annotate_log(log, annotated, params, options, progress, expected, stage, observer)
+        mcap_to_bag(annotated, output)
+    return replace(result, output_path=output)
 
 
 def _window(options: AnnotateOptions) -> str:

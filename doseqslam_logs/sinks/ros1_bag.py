@@ -1,4 +1,5 @@
-"""A ROS 1-profile MCAP (what `annotate` makes of a ROS 1 .bag) as a ROS 1 .bag: `to-bag`.
+"""A ROS 1-profile MCAP (what `annotate` makes of a ROS 1 .bag) as a ROS 1 .bag: `to-bag`, and
+`annotate LOG.bag -o OUT.bag`.
 
 rosbags, rosbags-convert and evo read MCAP only as ROS 2 ("Profile is not ros2"); rosbag,
 rosbags and evo read the .bag this writes. Every message keeps its bytes, topic and log time
@@ -17,11 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UsageError
-from ..sinks.atomic import atomic_path
-from ..sinks.mcap_writer import refuse_same_file
 from ..sources import chunk_limits  # noqa: F401 - the input's chunks are read within the cap
 from ..sources.copying import guarded_reads, reading_errors
 from ..sources.formats import format_of
+from .atomic import atomic_path
+from .mcap_writer import refuse_same_file
 
 ROS1 = ("ros1", "ros1msg")  # (message encoding, schema encoding) of a ROS 1 channel
 
