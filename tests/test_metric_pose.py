@@ -201,7 +201,10 @@ def test_depth_pnp_recovers_random_poses(yaw: float, x: float, z: float, seed: i
     translation_error, rotation_error = errors(pose, truth)
     assert translation_error < DEPTH_TRANSLATION_TOL_M
     assert rotation_error < ROTATION_TOL_DEG
-    assert pose.inliers >= 135  # of 150, none wrong (0.5 px noise in both views)
+    # Of 150 correspondences, none wrong (0.5 px noise in both views): most are inliers. Not
+    # "nearly all": at the random poses' extremes the noise puts a few past the fit's
+    # threshold (134 seen in a CI run; a broken fit keeps far fewer).
+    assert pose.inliers >= 120
     assert pose.rms_px < 3 * NOISE_PX
 
 

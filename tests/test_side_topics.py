@@ -9,7 +9,10 @@ import contextlib
 import io
 import math
 import struct
+from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
@@ -47,24 +50,36 @@ def _damaged(data: bytes, decoded: object, damage: str) -> bytes:
     return data[:at] + new + data[at + len(old) :]
 
 
-def copy_with_bad_odometry(out: Path, damage_of: dict[int, str]) -> Path:
-    """drive_loops with the i-th /odom message damaged as damage_of[i] says."""
-    decoder = DecoderFactory()
+# change(topic, index of the message in its topic, data, decode) -> the data written instead
+Change = Callable[[str, int, bytes, Callable[[bytes], object]], bytes]
+
+
+def rewrite_messages(source: Path, out: Path, change: Change) -> Path:
+    """The ROS 2 MCAP `source` written again with each message's data as `change` says."""
+    factory = DecoderFactory()
+    decoders: dict[int, Callable[[bytes], object]] = {}  # by channel id, made when asked for
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
-    index = 0
-    with LOOPS.open("rb") as stream, out.open("wb") as sink:
+    counts: Counter[str] = Counter()
+
+    def decoder(schema: Any, channel: Any) -> Callable[[bytes], object]:
+        def decode(data: bytes) -> object:
+            if channel.id not in decoders:
+                made = factory.decoder_for(channel.message_encoding, schema)
+                assert made is not None
+                decoders[channel.id] = made
+            return decoders[channel.id](data)
+
+        return decode
+
+    with source.open("rb") as stream, out.open("wb") as sink:
         writer = Writer(sink, compression=CompressionType.ZSTD)
         writer.start(profile="ros2")
         for schema, channel, message in make_reader(stream).iter_messages():
             assert schema is not None
-            data = message.data
-            if channel.topic == ODOM:
-                if index in damage_of:
-                    decode = decoder.decoder_for(channel.message_encoding, schema)
-                    assert decode is not None
-                    data = _damaged(data, decode(data), damage_of[index])
-                index += 1
+            decode = decoder(schema, channel)
+            data = change(channel.topic, counts[channel.topic], message.data, decode)
+            counts[channel.topic] += 1
             if schema.id not in schemas:
                 schemas[schema.id] = writer.register_schema(
                     schema.name, schema.encoding, schema.data
@@ -76,6 +91,17 @@ def copy_with_bad_odometry(out: Path, damage_of: dict[int, str]) -> Path:
             writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
         writer.finish()
     return out
+
+
+def copy_with_bad_odometry(out: Path, damage_of: dict[int, str]) -> Path:
+    """drive_loops with the i-th /odom message damaged as damage_of[i] says."""
+
+    def change(topic: str, index: int, data: bytes, decode: Callable[[bytes], object]) -> bytes:
+        if topic != ODOM or index not in damage_of:
+            return data
+        return _damaged(data, decode(data), damage_of[index])
+
+    return rewrite_messages(LOOPS, out, change)
 
 
 def test_each_bad_odometry_message_is_skipped_and_counted(tmp_path: Path) -> None:
