@@ -16,7 +16,7 @@ from pathlib import Path
 from mcap.writer import Writer
 
 from doseqslam_logs.errors import SourceError
-from doseqslam_logs.sources.base import ChannelInfo, DecodedMessage, ImageMessage, Promise
+from doseqslam_logs.sources.base import ChannelInfo, DecodedMessage, ImageMessage, SourceDefaults
 from doseqslam_logs.sources.copying import Copied, CopyHooks
 from doseqslam_logs.sources.formats import CopyPlan, LogFormat
 
@@ -45,7 +45,7 @@ def _records(path: Path) -> Iterator[tuple[int, bytes]]:
             yield log_time_ns, file.read(size)
 
 
-class ToySource:
+class ToySource(SourceDefaults):
     """The `Source` of a toy log."""
 
     def __init__(self, path: Path) -> None:
@@ -72,21 +72,6 @@ class ToySource:
             after_start = start_ns is None or log_time_ns >= start_ns
             if topic == TOPIC and after_start and (end_ns is None or log_time_ns < end_ns):
                 yield log_time_ns, jpeg
-
-    def promised_messages(self, topic: str) -> Promise | None:
-        return None
-
-    def unattributed_messages(self) -> int:
-        return 0
-
-    def close(self) -> None:
-        pass
-
-    def __enter__(self) -> ToySource:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def copy_toy(path: Path, writer: Writer, hooks: CopyHooks) -> Copied:

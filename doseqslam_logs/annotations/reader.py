@@ -112,6 +112,21 @@ def _records_of_ours(
     return entries, frame_times
 
 
+def _ours_of(
+    stream: IO[bytes], reader: Any, attachments: bool
+) -> tuple[dict[str, str], FrameTimes | None]:
+    """`_records_of_ours` of the file, through its summary's indexes, else (a summary without
+    metadata index, rewritten by another tool) from the data section, where the record still
+    is; frame times only with `attachments`."""
+    found = reader.iter_attachments() if attachments else ()
+    entries, frame_times = _records_of_ours(reader.iter_metadata(), found)
+    if not entries:
+        stream.seek(0)
+        records = list(_metadata_and_attachments(stream))
+        entries, frame_times = _records_of_ours(records, records if attachments else ())
+    return entries, frame_times
+
+
 def _metadata_and_attachments(stream: IO[bytes]) -> Iterator[Metadata | Attachment]:
     """The Metadata and Attachment records of the file, read in one pass from its start."""
     for record in StreamReader(stream).records:
@@ -156,15 +171,7 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
                     decoders[schema.id] = _decoder(schema, channel.message_encoding)
                 decoded = plain(decoders[schema.id](message.data))
                 (closures if channel.topic == LOOP_CLOSURE.topic else sequences).append(decoded)
-            entries, frame_times = _records_of_ours(
-                reader.iter_metadata(), reader.iter_attachments()
-            )
-            if not entries:
-                # A summary without metadata index (rewritten by another tool): the record
-                # is still in the data section, so read it from there.
-                stream.seek(0)
-                records = list(_metadata_and_attachments(stream))
-                entries, frame_times = _records_of_ours(records, records)
+            entries, frame_times = _ours_of(stream, reader, attachments=True)
     except (OSError, McapError, ValueError, KeyError, struct.error) as exc:
         raise SourceError(f"{path}: cannot read the annotations ({_problem(file, exc)})") from exc
     if not entries:
@@ -199,10 +206,7 @@ def read_run_metadata(path: str | Path) -> RunMetadata | None:
     file = Path(path)
     try:
         with file.open("rb") as stream:
-            entries, _ = _records_of_ours(make_reader(stream).iter_metadata(), ())
-            if not entries:
-                stream.seek(0)
-                entries, _ = _records_of_ours(_metadata_and_attachments(stream), ())
+            entries, _ = _ours_of(stream, make_reader(stream), attachments=False)
         return RunMetadata.from_entries(entries) if entries else None
     except (OSError, McapError, ValueError, KeyError, TypeError, struct.error):
         return None

@@ -136,7 +136,7 @@ def _run_images(args: argparse.Namespace) -> int:
             progress=progress,
             expected=expected,
             max_pixels=args.max_pixels,
-            stage=progress.stage,
+            stage=progress.started,
         )
     finally:
         progress.close()

@@ -11,7 +11,7 @@ from typing import Any
 
 from ..annotations.records import OUR_TOPIC_PREFIX, RunMetadata
 from ..errors import ImageDecodeError
-from ..sources import image_channels, open_source
+from ..sources import open_source
 from ..sources.base import ChannelInfo, Source
 from ..sources.images import decode_gray
 
@@ -110,8 +110,8 @@ def run(args: argparse.Namespace) -> int:
     with open_source(args.log) as source:
         channels = source.channels()
         # Our match images are a picture of the run, not a camera of the log.
-        ours = [c for c in image_channels(source) if c.topic.startswith(OUR_TOPIC_PREFIX)]
-        cameras = [camera_summary(source, c) for c in image_channels(source) if c not in ours]
+        ours = [c for c in channels if c.is_image and c.topic.startswith(OUR_TOPIC_PREFIX)]
+        cameras = [camera_summary(source, c) for c in channels if c.is_image and c not in ours]
     others = [c for c in channels if not c.is_image or c in ours]
     annotated = read_run_metadata(args.log) if Path(args.log).is_file() else None
     if args.json:

@@ -55,10 +55,6 @@ class Progress(StageObserver):
     def __call__(self, done: int) -> None:
         self.advanced("replay", done, self.total)
 
-    def stage(self, name: str) -> None:
-        """`annotate_log(stage=...)`: the same as `started`."""
-        self.started(name)
-
     def started(self, stage: str) -> None:
         now = time.perf_counter()
         self._stage_start = now

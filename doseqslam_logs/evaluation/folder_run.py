@@ -17,7 +17,7 @@ from ..detector import Parameters
 from ..detector.events import SequenceDecision
 from ..errors import GroundTruthError
 from ..pipeline.annotate import AnnotateOptions, Decided, OpenLog, decide_log
-from ..pipeline.feature_health import ADVICE, CheckFeasibility, FeatureHealth, check_feasibility
+from ..pipeline.feature_health import ADVICE, FeatureHealth
 from ..pipeline.replay import ReplayResult
 from ..sources.image_folder import ImageFolderSource, folder_time_ns
 from ..sources.image_header import DEFAULT_MAX_PIXELS
@@ -46,7 +46,6 @@ class FolderVerification:
     decisions: list[SequenceDecision]  # reduced to their accepted pairs (verified_decisions)
     stats: VerificationStats  # seconds summed over the threads
     wall_s: float  # of the whole stage
-    checks: CheckFeasibility | None = None  # the checks the frames' features made impossible
 
     def describe(self) -> str:
         """The report's account: hash, pairs verified and accepted, and the cost."""
@@ -205,9 +204,8 @@ def _folder_verification(decided: Decided) -> FolderVerification:
     run = decided.verification
     assert run is not None
     checked = list(run.decisions.values())
-    feasible = check_feasibility(checked)
     return FolderVerification(
-        run.params, run.intrinsics, verified_decisions(checked), run.stats, run.wall_s, feasible
+        run.params, run.intrinsics, verified_decisions(checked), run.stats, run.wall_s
     )
 
 

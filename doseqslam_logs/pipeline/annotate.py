@@ -611,7 +611,7 @@ class _Run:
             verification.metric = self.metric(replayed, verification, odometry)
             self.observer.finished("metric", verification.metric)
         sha256 = waiting.result(digest)
-        annotations, health = self.annotations(replayed, verification, sha256)
+        annotations, health = self.annotations(decided, sha256)
         track = None if odometry.frames is None else odometry.frames.track
         try:
             written = self.write(annotations, replayed.topic, track)
@@ -725,10 +725,9 @@ class _Run:
             progress=lambda done, total: self.observer.advanced("metric", done, total),
         )
 
-    def annotations(
-        self, replayed: Replayed, verification: Verification | None, sha256: str
-    ) -> tuple[Annotations, FeatureHealth]:
+    def annotations(self, decided: Decided, sha256: str) -> tuple[Annotations, FeatureHealth]:
         """Our messages and metadata for the decisions (spooled: `close` when written)."""
+        replayed, verification = decided.replayed, decided.verification
         params, options, log, result = self.params, self.options, self.log, replayed.result
         metadata = run_metadata(
             params,
@@ -744,7 +743,7 @@ class _Run:
         )
         if verification is not None:
             metadata = verification.recorded_in(metadata)
-        health = Decided(replayed, verification, Odometry(None)).feature_health(params)
+        health = decided.feature_health(params)
         metadata = replace(metadata, feature_poor_json=health.metadata_json())
         metric = None if verification is None else verification.metric
         annotations = Annotations.from_decisions(

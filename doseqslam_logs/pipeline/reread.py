@@ -137,7 +137,8 @@ class LogFrameReader(Closing):
 
 
 class FolderFrameReader:
-    """Gray frames of an image folder by index (the `evaluate --images` case)."""
+    """Gray frames of an image folder by index: a Verifier's frame loader over a folder with
+    no run around it (`evaluate --images` reads through its ImageFolderSource instead)."""
 
     def __init__(self, images: Sequence[Path], max_pixels: int = DEFAULT_MAX_PIXELS) -> None:
         self.images = list(images)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Literal, Protocol, TypeVar
 
 ImageKind = Literal["raw", "compressed"]
 
@@ -120,3 +120,27 @@ class Source(Protocol):
     def __enter__(self) -> Source: ...
 
     def __exit__(self, *exc: object) -> None: ...
+
+
+_Defaults = TypeVar("_Defaults", bound="SourceDefaults")
+
+
+class SourceDefaults:
+    """What a `Source` with nothing of its own to release, and no index or statistics that
+    promise a count, inherits (an image folder, a toy format): no promise, no unattributed
+    message, and the context manager around `close`."""
+
+    def promised_messages(self, topic: str) -> Promise | None:
+        return None
+
+    def unattributed_messages(self) -> int:
+        return 0
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def __enter__(self: _Defaults) -> _Defaults:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -15,6 +15,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from rosbags.rosbag2 import Reader as Ros2Reader
+from rosbags.rosbag2.reader import DirectoryReader
+from rosbags.rosbag2.storage_mcap import McapReader as Ros2McapStorage
+
 from ..errors import SourceError
 from .bag_copy import copy_ros1_bag, copy_rosbag2, open_bag
 from .base import MCAP_MAGIC, ROS1_MAGIC, SQLITE_MAGIC, Source
@@ -85,10 +89,6 @@ def _rosbag2_file_plan(path: Path) -> CopyPlan:
 
 
 def _rosbag2_folder_plan(path: Path) -> CopyPlan:
-    from rosbags.rosbag2 import Reader as Ros2Reader
-    from rosbags.rosbag2.reader import DirectoryReader
-    from rosbags.rosbag2.storage_mcap import McapReader as Ros2McapStorage
-
     if not (path / ROSBAG2_METADATA).is_file():
         raise SourceError(f"{path}: a folder without {ROSBAG2_METADATA} is not a rosbag2 bag")
     with open_bag(path, Ros2Reader) as reader:

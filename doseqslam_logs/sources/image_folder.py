@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SourceError, UsageError
-from .base import ChannelInfo, DecodedMessage, ImageMessage, Promise
+from .base import ChannelInfo, DecodedMessage, ImageMessage, SourceDefaults
 from .frame import Frame
 from .image_header import DEFAULT_MAX_PIXELS, claimed_size
 from .images import Gray, captured_stderr, check_pixel_cap
@@ -99,7 +99,7 @@ FOLDER_TOPIC = "/image_folder"
 FOLDER_MESSAGE_TYPE = "image file"
 
 
-class ImageFolderSource:
+class ImageFolderSource(SourceDefaults):
     """An image folder as a `Source`: one camera topic whose frame i is the folder's i-th image
     in natural order, at log time i / fps seconds (no header stamp: run it on log time).
 
@@ -153,18 +153,3 @@ class ImageFolderSource:
             except OSError as exc:
                 raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from exc
             yield self.times_ns[index], data
-
-    def promised_messages(self, topic: str) -> Promise | None:
-        return None
-
-    def unattributed_messages(self) -> int:
-        return 0
-
-    def close(self) -> None:
-        pass
-
-    def __enter__(self) -> ImageFolderSource:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
