@@ -1,7 +1,8 @@
 """The run owns the log (issue #36, item 1): `annotate` opens its input once as a Source and
 every stage reads through it, so the input file is opened at most 6 times (the format's probe,
 the reader, the sha256, the writer's probe and its copy pass; 86 to 102 before), the odometry
-is read once, and the sources lend each read a handle of its own (two at once: two handles)."""
+and the CameraInfo are read in the replay's own pass over the camera topic (no pass of their
+own), and the sources lend each read a handle of its own (two at once: two handles)."""
 
 from __future__ import annotations
 
@@ -51,10 +52,17 @@ def opens_of(path: Path, argv: list[str]) -> int:
 
 
 @pytest.fixture
-def topic_reads(monkeypatch: pytest.MonkeyPatch) -> Counter[tuple[str, str]]:
-    """(method, topic) -> calls of the sources' readers of one topic."""
-    calls: Counter[tuple[str, str]] = Counter()
+def topic_reads(monkeypatch: pytest.MonkeyPatch) -> Counter[tuple[str, ...]]:
+    """(method, topic[, side topics...]) -> calls of the sources' readers."""
+    calls: Counter[tuple[str, ...]] = Counter()
     for cls in (McapSource, RosbagsSource):
+        passes = cls.image_and_side_messages
+
+        def with_side(self: Any, topic: str, side: Any, *a: Any, _o: Any = passes) -> Any:
+            calls[("image_and_side_messages", topic, *side)] += 1
+            return _o(self, topic, side, *a)
+
+        monkeypatch.setattr(cls, "image_and_side_messages", with_side)
         for name in ("messages", "raw_messages", "image_messages"):
             original = getattr(cls, name)
 
@@ -68,15 +76,30 @@ def topic_reads(monkeypatch: pytest.MonkeyPatch) -> Counter[tuple[str, str]]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["drive_loops.ros2.mcap", "drive_varrate.bag"])
-def test_annotate_opens_its_input_at_most_six_times_and_reads_the_odometry_once(
-    name: str, tmp_path: Path, topic_reads: Counter[tuple[str, str]]
+def test_annotate_opens_its_input_at_most_six_times_and_reads_the_side_topics_in_the_replay(
+    name: str, tmp_path: Path, topic_reads: Counter[tuple[str, ...]]
 ) -> None:
     log = SAMPLES / name
     opens = opens_of(log, ["annotate", str(log), "-o", str(tmp_path / "out.mcap")])
     assert 0 < opens <= MAX_OPENS
+    # One pass reads the frames, the odometry and the CameraInfo; none has a pass of its own.
+    replay = ("image_and_side_messages", TOPIC, "/odom", "/camera/camera_info")
+    assert topic_reads[replay] == 1
+    assert not [key for key in topic_reads if key[0] == "messages"], topic_reads
+
+
+@pytest.mark.slow
+def test_a_run_over_a_time_window_reads_its_side_topics_whole(
+    tmp_path: Path, topic_reads: Counter[tuple[str, ...]]
+) -> None:
+    # The pass reads the window only; the odometry is read whole (poses before and after the
+    # window bracket its first and last frames).
+    log = SAMPLES / "drive_loops.ros2.mcap"
+    out = tmp_path / "out.mcap"
+    start, end = str(1_700_000_010 * 10**9), str(1_700_000_060 * 10**9)
+    assert main(["annotate", str(log), "-o", str(out), "--start", start, "--end", end]) == 0
     assert topic_reads[("messages", "/odom")] == 1
-    assert topic_reads[("messages", "/camera/camera_info")] == 1
-    assert ("messages", "/ground_truth/pose") not in topic_reads  # /odom is the pose topic
+    assert not [key for key in topic_reads if key[0] == "image_and_side_messages"]
 
 
 def test_a_rosbag2_folder_is_opened_once_by_its_source(tmp_path: Path) -> None:

@@ -81,6 +81,7 @@ from .metric_edges import (
 )
 from .replay import ReplayResult, replay
 from .reread import LogFrameReader
+from .side_topics import SideTopics
 from .stages import StageCallback, StageObserver, observer_of
 
 # Verification.intrinsics_source of a camera assumed where the CameraInfo's K is unusable.
@@ -221,17 +222,21 @@ def verify_decisions(
     odometry: OdometryFrames | None = None,
     frame_size: tuple[int, int] | None = None,
     progress: Callable[[int], None] | None = None,
+    side: SideTopics | None = None,
 ) -> Verification | None:
     """The verification stage over a finished replay (None when it is off); `features`: the
     frames' features the replay extracted, if it did; `odometry`: the camera's poses at the
     frames, for the motion rule (None: it looks at the images); `frame_size`: (width, height)
     of the frames, for an assumed camera where the CameraInfo's K is unusable; `progress(
-    decisions verified)`. `log`: the run's open Source (or a path)."""
+    decisions verified)`; `side`: the CameraInfo the replay's pass collected, if it did. `log`:
+    the run's open Source (or a path)."""
     if options.verification is None:
         return None
     intrinsics, origin, unusable = options.intrinsics, "--intrinsics", ""
     if intrinsics is None:
-        search = find_camera_info(log, topic)
+        search = None if side is None else side.camera_info_search()
+        if search is None:
+            search = find_camera_info(log, topic)
         info, unusable = search.info, search.describe_unusable()
         if info is not None:
             intrinsics, origin = Intrinsics(info.fx, info.fy, info.cx, info.cy), info.topic
@@ -550,6 +555,7 @@ class Replayed:
     frame_times: FrameTimes
     first_shape: tuple[int, int] | None
     first_size: str
+    side: SideTopics  # the pose topic and CameraInfo read in the replay's pass
 
 
 @dataclass(frozen=True)
@@ -598,6 +604,7 @@ class _Run:
                     replayed.frame_times,
                     options.time_source,
                     options.odometry_topic,
+                    replayed.side.poses,
                 )
             verification = self.verify(replayed, features, odometry)
         return Decided(replayed, verification, odometry)
@@ -612,7 +619,8 @@ class _Run:
             self.observer.finished("metric", verification.metric)
         sha256 = waiting.result(digest)
         annotations, health = self.annotations(decided, sha256)
-        track = None if odometry.frames is None else odometry.frames.track
+        frames = odometry.frames
+        track = replayed.side.pose_track() if frames is None else frames.track
         try:
             written = self.write(annotations, replayed.topic, track)
         finally:
@@ -649,7 +657,12 @@ class _Run:
         expected = self.callbacks.expected
         if expected is not None:
             expected(next((c.message_count for c in source.channels() if c.topic == topic), None))
-        messages = source.image_messages(topic, options.start_ns, options.end_ns)
+        side = self._side_topics(topic)
+        start_ns, end_ns = options.start_ns, options.end_ns
+        if side.topics:
+            messages = side.split(source.image_and_side_messages(topic, side.topics))
+        else:
+            messages = source.image_messages(topic, start_ns, end_ns)
         decode = functools.partial(decode_gray, max_pixels=options.max_pixels)
         frames = decoded_frames(messages, counts, options.time_source, options.on_error, decode)
         try:
@@ -671,7 +684,23 @@ class _Run:
             frame_times,
             recorder.first_shape,
             recorder.first_size,
+            side,
         )
+
+    def _side_topics(self, image_topic: str) -> SideTopics:
+        """What the replay's pass reads besides the frames: the pose topic (for the motion
+        rule, the metric poses and the trajectory drawn) and the CameraInfo (for the
+        verification). A run over a time window reads them later, whole."""
+        options = self.options
+        if options.start_ns is not None or options.end_ns is not None:
+            return SideTopics()
+        verifies = options.verification is not None
+        if verifies:
+            pose_topic = options.odometry_topic
+        else:
+            pose_topic = None if options.visualization and not options.sidecar else ""
+        camera_info = verifies and options.intrinsics is None
+        return SideTopics.for_run(self.log.source, image_topic, pose_topic, camera_info)
 
     def _detect(self, frames: Iterable[Frame], features: FeatureSpill | None) -> ReplayResult:
         """The detector over the frames. The detector, whose place index and frame vectors
@@ -699,6 +728,7 @@ class _Run:
             odometry.frames,
             replayed.first_shape,
             lambda done: self.observer.advanced("verify", done, total),
+            replayed.side,
         )
         if verification is not None:
             self.observer.finished("verify", verification)

@@ -56,7 +56,13 @@ from ..sources import Log, opened
 from ..sources.base import Source
 from ..sources.depth import DepthFrames, find_depth_topic, stream_depth
 from ..sources.image_header import DEFAULT_MAX_PIXELS
-from ..sources.poses import PoseTrack, default_pose_topic, describe_skipped, read_poses
+from ..sources.poses import (
+    PoseReader,
+    PoseTrack,
+    default_pose_topic,
+    describe_skipped,
+    read_poses,
+)
 from ..verification.geometry import FrameFeatures, Intrinsics, Verdict, extract_features
 from ..verification.metric_pose import (
     OPTICAL_TO_BODY,
@@ -412,18 +418,26 @@ class Odometry:
 
 
 def read_odometry(
-    log: Log, frame_times: FrameTimes, time_source: str, asked: str | None
+    log: Log,
+    frame_times: FrameTimes,
+    time_source: str,
+    asked: str | None,
+    collected: PoseReader | None = None,
 ) -> Odometry:
     """The odometry at the frames: `asked` (raises SourceError when it cannot be read), else the
     log's default pose topic (`default_pose_topic`; when there is none or it cannot be read,
-    the run goes on with the other rungs and `problem` says why), "" none. Its PoseTrack is
-    kept (`track`) for the trajectory the visualization draws."""
+    the run goes on with the other rungs and `problem` says why), "" none. `collected`: that
+    topic as the replay's pass read it (None: read here). Its PoseTrack is kept (`track`) for
+    the trajectory the visualization draws."""
     with opened(log) as source:
         topic = default_pose_topic(source) if asked is None else asked
         if not topic:
             return Odometry(None)
         try:
-            track = read_poses(source, topic)
+            if collected is not None and collected.topic == topic:
+                track = collected.track()
+            else:
+                track = read_poses(source, topic)
         except SourceError as exc:
             if asked is not None:
                 raise

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import heapq
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Protocol, TypeVar
+from typing import Any, Literal, Protocol, TypeVar, cast
 
 ImageKind = Literal["raw", "compressed"]
 
@@ -79,6 +80,21 @@ class DecodedMessage:
     decode_error: str | None = None
 
 
+@dataclass(frozen=True)
+class SideMessage:
+    """A message of another topic met in the pass that reads the camera's (odometry, camera
+    info): decoded only when its reader wants it, so a topic read for its first messages costs
+    no more than the pass.
+
+    `decode()` returns the DecodedMessage (`decode_error` set for a damaged message) and raises
+    SourceError when the topic itself cannot be decoded (no schema, an unsupported encoding).
+    """
+
+    topic: str
+    log_time_ns: int
+    decode: Callable[[], DecodedMessage]
+
+
 class Source(Protocol):
     """A readable log. Sources are context managers; the input file is opened read-only."""
 
@@ -97,6 +113,18 @@ class Source(Protocol):
     def messages(self, topic: str) -> Iterator[DecodedMessage]:
         """Every message of `topic` (poses, camera info: the other channels a run reads),
         decoded. SourceError while iterating when the log or a message cannot be read."""
+        ...
+
+    def image_and_side_messages(
+        self,
+        topic: str,
+        side_topics: Sequence[str],
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[ImageMessage | SideMessage]:
+        """In one pass over the log, in log-time order within [start_ns, end_ns): the image
+        messages of `topic` (as `image_messages` yields them) and the messages of
+        `side_topics` (as SideMessage). Raises as `image_messages` does."""
         ...
 
     def raw_messages(
@@ -136,6 +164,15 @@ class SourceDefaults:
     def unattributed_messages(self) -> int:
         return 0
 
+    def image_and_side_messages(
+        self,
+        topic: str,
+        side_topics: Sequence[str],
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[ImageMessage | SideMessage]:
+        return merged_passes(cast(Source, self), topic, side_topics, start_ns, end_ns)
+
     def close(self) -> None:
         """Nothing to release."""
 
@@ -144,3 +181,31 @@ class SourceDefaults:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def merged_passes(
+    source: Source,
+    topic: str,
+    side_topics: Sequence[str],
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+) -> Iterator[ImageMessage | SideMessage]:
+    """`image_and_side_messages` for a source that reads one topic at a time (an image folder
+    has no side topic; a toy format): a pass per topic, merged by log time."""
+    images = source.image_messages(topic, start_ns, end_ns)
+    passes: list[Iterator[ImageMessage | SideMessage]] = [images]
+    passes += [_side_pass(source, side, start_ns, end_ns) for side in side_topics]
+    return heapq.merge(*passes, key=lambda message: message.log_time_ns)
+
+
+def _side_pass(
+    source: Source, topic: str, start_ns: int | None, end_ns: int | None
+) -> Iterator[SideMessage]:
+    for message in source.messages(topic):
+        time_ns = message.log_time_ns
+        if (start_ns is None or time_ns >= start_ns) and (end_ns is None or time_ns < end_ns):
+            yield SideMessage(topic, time_ns, _decoded_already(message))
+
+
+def _decoded_already(message: DecodedMessage) -> Callable[[], DecodedMessage]:
+    return lambda: message

@@ -15,10 +15,11 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass, field
-from itertools import islice
 from typing import Any
 
+from ..errors import SourceError
 from . import Log, opened
+from .base import DecodedMessage, SideMessage, Source
 
 CAMERA_INFO_TYPES = (
     "sensor_msgs/msg/CameraInfo",
@@ -70,21 +71,60 @@ def find_camera_info(log: Log, image_topic: str) -> CameraInfoSearch:
     Raises SourceError when the log cannot be read.
     """
     with opened(log) as source:
+        reader = CameraInfoReader(source, image_topic)
+        if reader.search.topic:
+            for item in source.messages(reader.search.topic):
+                reader.add(item)
+                if not reader.wants_more:
+                    break
+    return reader.found()
+
+
+class CameraInfoReader:
+    """The camera's CameraInfo messages in, a CameraInfoSearch out: `find_camera_info` feeds
+    it the topic, a run the messages its replay's pass meets (`add_side`)."""
+
+    def __init__(self, source: Source, image_topic: str) -> None:
         topics = [c.topic for c in source.channels() if _is_camera_info(c.message_type)]
-        topic = _closest(topics, image_topic)
-        if topic is None:
-            return CameraInfoSearch()
-        search = CameraInfoSearch(topic)
-        for item in islice(source.messages(topic), MAX_CAMERA_INFOS):
-            if item.decode_error is not None:
-                search.unusable["undecodable"] += 1
-                continue
-            info = _camera_info(topic, item.message)
-            if isinstance(info, CameraInfo):
-                search.info = info
-                break
+        self.search = CameraInfoSearch(_closest(topics, image_topic) or "")
+        self.seen = 0
+        self.error: SourceError | None = None  # the topic could not be decoded: `found` raises
+
+    @property
+    def wants_more(self) -> bool:
+        """Whether a later message could still change the search."""
+        search = self.search
+        return self.error is None and search.info is None and self.seen < MAX_CAMERA_INFOS
+
+    def add(self, item: DecodedMessage) -> None:
+        """The topic's next message."""
+        if not self.wants_more:
+            return
+        self.seen += 1
+        search = self.search
+        if item.decode_error is not None:
+            search.unusable["undecodable"] += 1
+            return
+        info = _camera_info(search.topic, item.message)
+        if isinstance(info, CameraInfo):
+            search.info = info
+        else:
             search.unusable[info] += 1
-    return search
+
+    def add_side(self, message: SideMessage) -> None:
+        """`add` for a message met in another topic's pass, decoded only while it may count."""
+        if not self.wants_more:
+            return
+        try:
+            self.add(message.decode())
+        except SourceError as exc:
+            self.error = exc
+
+    def found(self) -> CameraInfoSearch:
+        """The search; SourceError when the topic could not be decoded."""
+        if self.error is not None:
+            raise self.error
+        return self.search
 
 
 def read_camera_info(log: Log, image_topic: str) -> CameraInfo | None:

@@ -1,18 +1,18 @@
-"""Ranged reads of one topic of an indexed MCAP file through its message indexes.
+"""Ranged reads of some topics of an indexed MCAP file through their message indexes.
 
 mcap's SeekingReader parses every record of every chunk it opens, in Python. The verification
 stage re-reads a few frames at a time, from chunks that also hold the log's other topics, and
 that parsing, holding the GIL, is a large share of the stage's time. Each chunk's message index
 lists the offsets of one channel's messages in it: this reader decompresses the chunk and slices
 out only those. It yields the same messages in the same
-order as `SeekingReader.iter_messages(topics=[topic], log_time_order=True)` (tested), through
+order as `SeekingReader.iter_messages(topics=topics, log_time_order=True)` (tested), through
 mcap's own log-time queue.
 """
 
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import IO
 
 from mcap.data_stream import ReadDataStream
@@ -37,16 +37,21 @@ _INDEX_HEADER = struct.Struct("<HI")  # channel id, byte length of the (time, of
 
 
 def indexed_topic_messages(
-    file: IO[bytes], summary: Summary, topic: str, start_ns: int | None, end_ns: int | None
+    file: IO[bytes],
+    summary: Summary,
+    topics: str | Sequence[str],
+    start_ns: int | None,
+    end_ns: int | None,
 ) -> Iterator[Record] | None:
-    """The messages of `topic` with log time in [start_ns, end_ns) (None: unbounded), or None
-    when a chunk that may hold them has no message index (the caller then reads the chunks
-    whole, as it does without mcap's queue)."""
+    """The messages of `topics` (one name or several) with log time in [start_ns, end_ns)
+    (None: unbounded), or None when a chunk that may hold them has no message index (the
+    caller then reads the chunks whole, as it does without mcap's queue)."""
     if make_message_queue is None:
         return None
     start_ns = 0 if start_ns is None else start_ns
     end_ns = _NO_END if end_ns is None else end_ns
-    channels = {cid: ch for cid, ch in summary.channels.items() if ch.topic == topic}
+    wanted = {topics} if isinstance(topics, str) else set(topics)
+    channels = {cid: ch for cid, ch in summary.channels.items() if ch.topic in wanted}
     chunks = [
         chunk
         for chunk in summary.chunk_indexes

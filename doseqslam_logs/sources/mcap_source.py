@@ -16,13 +16,14 @@ from __future__ import annotations
 import base64
 import contextlib
 import errno
+import functools
 import heapq
 import inspect
 import io
 import json
 import struct
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -41,6 +42,7 @@ from doseqslam_logs.sources.base import (
     DecodedMessage,
     ImageMessage,
     Promise,
+    SideMessage,
 )
 from doseqslam_logs.sources.chunk_limits import ChunkTooLargeError, check_chunk_size
 from doseqslam_logs.sources.handles import HandlePool
@@ -273,14 +275,19 @@ def _group_by_topic(stats: list[_ChannelStats]) -> list[ChannelInfo]:
 
 
 def _iter_topic(
-    reader: McapReader, topic: str, start_ns: int | None, end_ns: int | None, ordered: bool
+    reader: McapReader,
+    topics: str | Sequence[str],
+    start_ns: int | None,
+    end_ns: int | None,
+    ordered: bool,
 ) -> Iterator[_Record]:
+    names = [topics] if isinstance(topics, str) else list(topics)
     if _NEW_TIME_NAMES:
         return reader.iter_messages(
-            topics=[topic], log_time_order=ordered, starting_at=start_ns, ending_before=end_ns
+            topics=names, log_time_order=ordered, starting_at=start_ns, ending_before=end_ns
         )
     return reader.iter_messages(
-        topics=[topic], start_time=start_ns, end_time=end_ns, log_time_order=ordered
+        topics=names, start_time=start_ns, end_time=end_ns, log_time_order=ordered
     )
 
 
@@ -522,22 +529,42 @@ class McapSource:
             SourceError: while iterating, the file is corrupt or truncated, or the channel's
                 message/schema encoding is not supported or its schema does not parse.
         """
+        self._check_image_topic(topic)
+        messages = self._images(topic, (), start_ns, end_ns)
+        return (m for m in messages if isinstance(m, ImageMessage))  # no side topic: all are
+
+    def image_and_side_messages(
+        self,
+        topic: str,
+        side_topics: Sequence[str],
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[ImageMessage | SideMessage]:
+        """`image_messages` of `topic` and the messages of `side_topics` in one pass: through
+        the message indexes, each chunk is read once for them all."""
+        self._check_image_topic(topic)
+        return self._images(topic, tuple(side_topics), start_ns, end_ns)
+
+    def _check_image_topic(self, topic: str) -> None:
         image_topics = [c.topic for c in self.channels() if c.is_image]
         if topic not in image_topics:
             raise NoCameraError(
                 f"{self.path}: {topic!r} is not an image topic (image topics: "
                 f"{', '.join(image_topics) or 'none'})"
             )
-        return self._images(topic, start_ns, end_ns)
 
     def _images(
-        self, topic: str, start_ns: int | None, end_ns: int | None
-    ) -> Iterator[ImageMessage]:
+        self, topic: str, side_topics: tuple[str, ...], start_ns: int | None, end_ns: int | None
+    ) -> Iterator[ImageMessage | SideMessage]:
         if start_ns is not None and end_ns is not None and start_ns >= end_ns:
             return
         try:
-            for schema, channel, message in self._lent_records(topic, start_ns, end_ns):
-                if schema is not None and is_image_type(schema.name):
+            records = self._lent_records((topic, *side_topics), start_ns, end_ns)
+            for schema, channel, message in records:
+                if channel.topic != topic:
+                    decode = functools.partial(self._decode, schema, channel, message)
+                    yield SideMessage(channel.topic, message.log_time, decode)
+                elif schema is not None and is_image_type(schema.name):
                     yield self._to_image(schema, channel, message)
         except DoseqslamError:
             raise
@@ -566,16 +593,20 @@ class McapSource:
         self._check_complete()
         with self._reading(topic):
             for schema, channel, message in self._lent_records(topic, None, None):
-                if schema is None:
-                    raise SourceError(f"{self.path}: topic {topic!r} has no schema")
-                deserialize = self._deserializer(schema, channel)  # a bad schema: the topic's
-                try:
-                    decoded = deserialize(message.data)
-                except Exception as exc:  # any deserializer, any damage: this message only
-                    problem = describe_read_error(exc)
-                    yield DecodedMessage(message.log_time, schema.name, None, problem)
-                    continue
-                yield DecodedMessage(message.log_time, schema.name, decoded)
+                yield self._decode(schema, channel, message)
+
+    def _decode(self, schema: Schema | None, channel: Channel, message: Message) -> DecodedMessage:
+        """One message decoded (`decode_error` when it is damaged); SourceError when its topic
+        cannot be decoded at all (no schema, an unsupported schema)."""
+        if schema is None:
+            raise SourceError(f"{self.path}: topic {channel.topic!r} has no schema")
+        deserialize = self._deserializer(schema, channel)  # a bad schema: the topic's
+        try:
+            decoded = deserialize(message.data)
+        except Exception as exc:  # any deserializer, any damage: this message only
+            problem = describe_read_error(exc)
+            return DecodedMessage(message.log_time, schema.name, None, problem)
+        return DecodedMessage(message.log_time, schema.name, decoded)
 
     @contextlib.contextmanager
     def _reading(self, topic: str) -> Iterator[None]:
@@ -590,19 +621,23 @@ class McapSource:
             ) from exc
 
     def _lent_records(
-        self, topic: str, start_ns: int | None, end_ns: int | None
+        self, topics: str | Sequence[str], start_ns: int | None, end_ns: int | None
     ) -> Iterator[_Record]:
         """`_records` on a handle of their own, lent by the pool and given back when they end
         (or are dropped)."""
         with self._handles.borrowed() as file:
-            yield from self._records(file, topic, start_ns, end_ns)
+            yield from self._records(file, topics, start_ns, end_ns)
 
     def _records(
-        self, file: IO[bytes], topic: str, start_ns: int | None, end_ns: int | None
+        self,
+        file: IO[bytes],
+        topics: str | Sequence[str],
+        start_ns: int | None,
+        end_ns: int | None,
     ) -> Iterator[_Record]:
         if self.indexed:
             assert self._summary is not None
-            by_index = indexed_topic_messages(file, self._summary, topic, start_ns, end_ns)
+            by_index = indexed_topic_messages(file, self._summary, topics, start_ns, end_ns)
             if by_index is not None:
                 return by_index
             seeking = self._reader(file)
@@ -613,12 +648,12 @@ class McapSource:
             # `_summary`; should that attribute go, it reads it again, correctly, just slower).
             if getattr(seeking, "_summary", False) is None:
                 seeking._summary = self._summary
-            return _iter_topic(seeking, topic, start_ns, end_ns, ordered=True)
+            return _iter_topic(seeking, topics, start_ns, end_ns, ordered=True)
         # NonSeekingReader with log_time_order=True would sort the whole file in memory. It
         # reads from where the handle stands: a borrowed handle stands where its last read left.
         file.seek(0)
         reader = NonSeekingReader(file, validate_crcs=True, record_size_limit=max(self.size, 1))
-        stream = _iter_topic(reader, topic, start_ns, end_ns, ordered=False)
+        stream = _iter_topic(reader, topics, start_ns, end_ns, ordered=False)
         return in_log_time_order(stream, REORDER_WINDOW)
 
     def _to_image(self, schema: Schema, channel: Channel, message: Message) -> ImageMessage:

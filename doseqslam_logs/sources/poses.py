@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from ..errors import SourceError
 from . import Log, opened
-from .base import Source
+from .base import DecodedMessage, SideMessage, Source
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -170,29 +170,63 @@ def read_poses(log: Log, topic: str) -> PoseTrack:
     usable pose. Unusable messages are skipped and counted (`PoseTrack.skipped`).
     """
     with opened(log) as source:
-        path = source.path
+        poses = PoseReader(source, topic)
+        for message in source.messages(topic):
+            poses.add(message)
+    return poses.track()
+
+
+class PoseReader:
+    """A pose topic's messages in, its PoseTrack out: `read_poses` feeds it a whole topic,
+    a run the messages its replay's pass meets (`add_side`).
+
+    Raises SourceError (constructor) when the topic is missing or not a supported pose type.
+    """
+
+    def __init__(self, source: Source, topic: str) -> None:
+        self.topic, self.path = topic, source.path
         types = [c.message_type for c in source.channels() if c.topic == topic]
-        kind = _check_type(path, topic, [n for t in types for n in t.split(", ")])
-        columns = _Columns(path, topic, with_covariance=kind in _WITH_COVARIANCE)
-        for m in source.messages(topic):
-            if m.decode_error is not None:
-                columns.skipped["undecodable"] += 1
-                continue
-            try:
-                pose = _pose(kind, m.message, m.log_time_ns)
-            except (TypeError, ValueError, AttributeError, OverflowError):
-                columns.skipped["fields missing or not numbers"] += 1
-                continue
-            if columns.add(pose) and len(columns.times) == 1:
-                columns.frame_id = frame_id_of(m.message)
-    if not columns.times:
-        if columns.skipped:
-            raise SourceError(
-                f"{path}: topic {topic!r} holds no usable pose "
-                f"({describe_skipped(columns.skipped)})"
-            )
-        raise SourceError(f"{path}: topic {topic!r} holds no messages")
-    return _track(columns)
+        self.kind = _check_type(self.path, topic, [n for t in types for n in t.split(", ")])
+        self.columns = _Columns(self.path, topic, with_covariance=self.kind in _WITH_COVARIANCE)
+        self.error: SourceError | None = None  # the topic could not be decoded: `track` raises
+
+    def add(self, message: DecodedMessage) -> None:
+        """One message of the topic, in log-time order: a pose kept, or why not counted."""
+        columns = self.columns
+        if message.decode_error is not None:
+            columns.skipped["undecodable"] += 1
+            return
+        try:
+            pose = _pose(self.kind, message.message, message.log_time_ns)
+        except (TypeError, ValueError, AttributeError, OverflowError):
+            columns.skipped["fields missing or not numbers"] += 1
+            return
+        if columns.add(pose) and len(columns.times) == 1:
+            columns.frame_id = frame_id_of(message.message)
+
+    def add_side(self, message: SideMessage) -> None:
+        """`add` for a message met in another topic's pass (decoded here)."""
+        if self.error is not None:
+            return
+        try:
+            self.add(message.decode())
+        except SourceError as exc:
+            self.error = exc
+
+    def track(self) -> PoseTrack:
+        """The poses read; SourceError when the topic holds no usable pose or could not be
+        decoded."""
+        if self.error is not None:
+            raise self.error
+        columns = self.columns
+        if not columns.times:
+            if columns.skipped:
+                raise SourceError(
+                    f"{self.path}: topic {self.topic!r} holds no usable pose "
+                    f"({describe_skipped(columns.skipped)})"
+                )
+            raise SourceError(f"{self.path}: topic {self.topic!r} holds no messages")
+        return _track(columns)
 
 
 def frame_id_of(message: Any) -> str:

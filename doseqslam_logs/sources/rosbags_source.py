@@ -9,7 +9,8 @@ to the standard ROS 2 Humble types.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+import functools
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -20,6 +21,7 @@ from doseqslam_logs.sources.base import (
     DecodedMessage,
     ImageMessage,
     Promise,
+    SideMessage,
 )
 from doseqslam_logs.sources.handles import HandlePool
 from doseqslam_logs.sources.images import RecordInfo, image_from_payload, is_image_type
@@ -192,6 +194,23 @@ class RosbagsSource:
             NoCameraError: `topic` (exact name) is not an image topic of this bag (at call time).
             SourceError: while iterating, the bag turns out corrupt.
         """
+        messages = self._images(self._image_connections(topic), [], start_ns, end_ns)
+        return (m for m in messages if isinstance(m, ImageMessage))  # no side topic: all are
+
+    def image_and_side_messages(
+        self,
+        topic: str,
+        side_topics: Sequence[str],
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[ImageMessage | SideMessage]:
+        """`image_messages` of `topic` and the messages of `side_topics`, in one pass of
+        rosbags' reader over their connections."""
+        images = self._image_connections(topic)
+        side = [c for c in self._reader.connections if c.topic in side_topics and c.topic != topic]
+        return self._images(images, side, start_ns, end_ns)
+
+    def _image_connections(self, topic: str) -> list[Connection]:
         connections = [
             c for c in self._reader.connections if c.topic == topic and is_image_type(c.msgtype)
         ]
@@ -202,16 +221,26 @@ class RosbagsSource:
                 f"{self.path}: {topic!r} is not an image topic (image topics: "
                 f"{', '.join(image_topics) or 'none'})"
             )
-        return self._images(connections, start_ns, end_ns)
+        return connections
 
     def _images(
-        self, connections: list[Connection], start_ns: int | None, end_ns: int | None
-    ) -> Iterator[ImageMessage]:
+        self,
+        connections: list[Connection],
+        side: list[Connection],
+        start_ns: int | None,
+        end_ns: int | None,
+    ) -> Iterator[ImageMessage | SideMessage]:
         if start_ns is not None and end_ns is not None and start_ns >= end_ns:
             return
+        topic = connections[0].topic  # the side topics are others
         try:
             deserializers = {c.msgtype: self._deserializer(c.msgtype) for c in connections}
-            for connection, log_time, payload in self._messages(connections, start_ns, end_ns):
+            every = connections + side
+            for connection, log_time, payload in self._messages(every, start_ns, end_ns):
+                if connection.topic != topic:
+                    decode = functools.partial(self._decode, connection, log_time, payload)
+                    yield SideMessage(connection.topic, log_time, decode)
+                    continue
                 record = RecordInfo(connection.topic, log_time)
                 deserialize = deserializers[connection.msgtype]
                 yield image_from_payload(connection.msgtype, payload, deserialize, record)
@@ -219,8 +248,7 @@ class RosbagsSource:
             raise
         except Exception as exc:
             raise SourceError(
-                f"{self.path}: cannot read the messages of {connections[0].topic} "
-                f"({_one_line(exc)})"
+                f"{self.path}: cannot read the messages of {topic} ({_one_line(exc)})"
             ) from exc
 
     def raw_messages(
@@ -247,13 +275,15 @@ class RosbagsSource:
             return
         with self._reading(topic):
             for connection, log_time, payload in self._messages(connections, None, None):
-                try:
-                    decoded = self._reader.deserialize(payload, connection.msgtype)
-                except Exception as exc:  # this message only: the bag itself reads on
-                    problem = f"{type(exc).__name__}: {exc}"
-                    yield DecodedMessage(log_time, connection.msgtype, None, problem)
-                    continue
-                yield DecodedMessage(log_time, connection.msgtype, decoded)
+                yield self._decode(connection, log_time, payload)
+
+    def _decode(self, connection: Connection, log_time: int, payload: bytes) -> DecodedMessage:
+        try:
+            decoded = self._reader.deserialize(payload, connection.msgtype)
+        except Exception as exc:  # this message only: the bag itself reads on
+            problem = f"{type(exc).__name__}: {exc}"
+            return DecodedMessage(log_time, connection.msgtype, None, problem)
+        return DecodedMessage(log_time, connection.msgtype, decoded)
 
     def _messages(
         self, connections: list[Connection], start_ns: int | None, end_ns: int | None
