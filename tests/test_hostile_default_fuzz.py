@@ -6,7 +6,8 @@ defaults (verification, motion rule, metric poses, visualization) and then `opti
 - message by message: a fifth of the depth, odometry and CameraInfo messages damaged (seeded:
   flipped bytes, cut short, grown, emptied);
 - container bytes mutated by hypothesis (test_fuzz's mutations: bit flips, cuts, inserted and
-  duplicated ranges, huge length fields), in a ROS 2 MCAP and a ROS 1 bag.
+  duplicated ranges, huge length fields), in a ROS 2 MCAP (also with --recover) and a ROS 1
+  bag.
 
 Each command succeeds or ends with a documented code and one line, never a traceback; an
 output is whole or absent; the input is never modified."""
@@ -48,14 +49,14 @@ def drive(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {"mcap": out / "drive.ros2.mcap", "bag": out / "drive.bag"}
 
 
-def annotate_and_optimize(log: Path, folder: Path) -> tuple[int, str]:
-    """annotate with the defaults, then optimize a successful output; checked as documented.
-    Returns annotate's exit code and stderr."""
+def annotate_and_optimize(log: Path, folder: Path, *options: str) -> tuple[int, str]:
+    """annotate with the defaults (and `options`), then optimize a successful output; checked
+    as documented. Returns annotate's exit code and stderr."""
     out, optimized = folder / "annotated.mcap", folder / "optimized.mcap"
     folder.mkdir()
     before = hashlib.sha256(log.read_bytes()).hexdigest()
     with time_limit(6 * PER_FILE_S):
-        code, err = run(["annotate", str(log), "-o", str(out)])
+        code, err = run(["annotate", str(log), "-o", str(out), *options])
         check(code, err, out)
         if code == 0:
             assert read_annotations(out).metadata.verification == "on"
@@ -107,6 +108,8 @@ def test_mutated_containers_on_the_default_path_end_as_documented(
             log = folder / drive[name].name
             log.write_bytes(mutate(data, mutations))
             outcomes.append(annotate_and_optimize(log, folder / "out")[0])
+            if name == "mcap":  # what it still holds, every stage on
+                outcomes.append(annotate_and_optimize(log, folder / "recovered", "--recover")[0])
         finally:
             shutil.rmtree(folder, ignore_errors=True)
 
