@@ -470,6 +470,28 @@ def test_the_optimized_and_odometry_paths_are_one_message_each_at_the_start(
 
 
 @pytest.mark.slow
+def test_optimize_defaults_to_the_odometry_annotate_recorded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Annotated with --odometry-topic /ground_truth/pose, optimized with no topic given: the
+    graph is built on the ground truth (frame map), not on the log's rule's /odom."""
+    annotated, out = tmp_path / "annotated.mcap", tmp_path / "optimized.mcap"
+    asked = ["--no-verify", "--odometry-topic", "/ground_truth/pose"]
+    assert (
+        main(["annotate", str(SAMPLES / "drive_loops.ros2.mcap"), "-o", str(annotated), *asked])
+        == 0
+    )
+    capsys.readouterr()
+    assert main(["optimize", str(annotated), "-o", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["frame_id"] == "map"
+    found = _path_messages(out)["paths"]
+    _, positions, _ = _path_arrays(found[ODOMETRY_PATH_TOPIC][3])
+    optimized = read_poses(out, OPTIMIZED_POSE_TOPIC)
+    truth = read_poses(out, "/ground_truth/pose").interpolate(optimized.times_ns)
+    np.testing.assert_allclose(positions, truth.positions, atol=1e-9)
+
+
+@pytest.mark.slow
 def test_a_sidecar_takes_its_poses_from_the_original_log(
     unverified: dict[str, Path], tmp_path: Path
 ) -> None:

@@ -112,13 +112,13 @@ def optimize_log(
     replace the input or is not a regular file).
     """
     log, output = Path(log), Path(output)
-    options = with_pose_topic(options, log)
     check_output_path(output)
     for source in (log, options.poses_log):
         if source is not None and output.exists() and output.resolve() == source.resolve():
             raise OutputError(f"{output}: the output would replace the input {source}")
     import_gtsam()  # before any reading: say at once that the extra is missing
     annotated = read_annotations(log)
+    options = with_pose_topic(options, annotated)
     graph = build_pose_graph(annotated, options)
     optimized = optimize_pose_graph(graph, optimize_options)
     poses_log = options.poses_log or log

@@ -56,7 +56,7 @@ from ..sources import Log, opened
 from ..sources.base import Source
 from ..sources.depth import DepthFrames, find_depth_topic, stream_depth
 from ..sources.image_header import DEFAULT_MAX_PIXELS
-from ..sources.poses import PoseTrack, default_pose_topic, describe_skipped, read_poses
+from ..sources.poses import PoseTrack, describe_skipped, read_poses, run_pose_topic
 from ..verification.geometry import FrameFeatures, Intrinsics, Verdict, extract_features
 from ..verification.metric_pose import (
     OPTICAL_TO_BODY,
@@ -419,7 +419,7 @@ def read_odometry(
     the run goes on with the other rungs and `problem` says why), "" none. Its PoseTrack is
     kept (`track`) for the trajectory the visualization draws."""
     with opened(log) as source:
-        topic = default_pose_topic(source) if asked is None else asked
+        topic = run_pose_topic(source, asked)
         if not topic:
             return Odometry(None)
         try:
