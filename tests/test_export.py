@@ -403,6 +403,46 @@ def test_the_pose_topic_defaults_to_the_one_annotate_picks(
     assert kind == "g2o" or "240 poses of /odom at camera times" in err
 
 
+@pytest.mark.parametrize(
+    ("asked", "recorded"),
+    [([], "/odom"), (["--odometry-topic", "/ground_truth/pose"], "/ground_truth/pose")],
+)
+def test_annotate_records_its_odometry_and_export_defaults_to_it(
+    annotated_sample: Callable[..., Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    asked: list[str],
+    recorded: str,
+) -> None:
+    """The odometry annotate used (the one asked for, else the log's rule) is recorded, and
+    export takes it where no --odometry-topic is given: here the ground truth, which the rule
+    would not pick (/odom is the log's nav_msgs/Odometry)."""
+    out = annotated_sample("drive_loops.ros2.mcap", "--no-verify", *asked)
+    assert read_annotations(out).metadata.odometry_topic == recorded
+    code, text, err = export(capsys, str(out), "--format", "tum")
+    assert code == 0 and f"240 poses of {recorded} at camera times" in err
+    expected = read_poses(out, recorded).interpolate(frame_times_ns(read_annotations(out)))
+    rows = np.array([line.split()[1:4] for line in text.splitlines()[1:]], float)
+    np.testing.assert_allclose(rows, expected.positions, atol=1e-9)
+    # The trajectory annotate drew is that topic's too: in its frame (odom, map).
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with out.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        [(_, _, _, markers)] = reader.iter_decoded_messages(topics=["/doseqslam/markers"])
+    assert {m.header.frame_id for m in markers.markers} == {read_poses(out, recorded).frame_id}
+
+
+def test_none_records_no_odometry_and_export_takes_the_logs_rule(
+    annotated_sample: Callable[..., Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = annotated_sample("drive_loops.ros2.mcap", "--no-verify", "--odometry-topic", "none")
+    assert read_annotations(out).metadata.odometry_topic == ""
+    code, _, err = export(capsys, str(out), "--format", "tum")
+    assert code == 0 and "240 poses of /odom at camera times" in err
+
+
 def test_a_sidecar_has_no_pose_topic_to_default_to(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

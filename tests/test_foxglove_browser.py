@@ -1,6 +1,7 @@
 """Issue #19: every output profile opens in a real viewer, the Foxglove Studio 1.48 web app
 (npm @foxglove/studio-base's prebuilt bundle) in headless Chromium, with our topics listed
-and no problem reported for them.
+and no problem reported for them; and docs/foxglove_layout.json over an optimized log draws
+the optimized and the odometry path, each in its colour.
 
 Needs node, Chromium and the npm packages of tests/viewer/foxglove_check.cjs in
 $DOSEQSLAM_VIEWER_MODULES (default ~/.cache/doseqslam-viewer); .ci/run installs them, and the
@@ -16,6 +17,7 @@ import os
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -93,23 +95,53 @@ def test_every_output_profile_opens_in_foxglove_with_no_problem(tmp_path: Path) 
             assert (shots / f"{Path(result['log']).name}.{tab}.png").stat().st_size > 0
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(bool(_missing()), reason=_missing() or "ready")
-def test_the_layout_shows_query_match_and_loop_lines_with_no_problem(tmp_path: Path) -> None:
-    """docs/foxglove_layout.json over the ROS 2 output of the `annotate` defaults: the run
-    drives the viewer; the screenshot (docs/images/foxglove_loop_closure.png) is looked at."""
-    output = tmp_path / "ros2.layout.mcap"
-    assert main(["annotate", str(REPO / "sample_logs" / PROFILES["ros2"]), "-o", str(output)]) == 0
-    shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
-    shots.mkdir(parents=True, exist_ok=True)
+# The layout's colours of the optimized and the odometry path (docs/foxglove_layout.json), as
+# the screenshot holds them (BGR): nothing else in the picture has either hue.
+OPTIMIZED_BGR = (255, 0, 255)
+ODOMETRY_BGR = (0, 176, 255)
+PATHS = ("/doseqslam/optimized_path", "/doseqslam/odometry_path")
+
+
+def _pixels_of(png: Path, bgr: tuple[int, int, int], tolerance: int = 40) -> int:
+    """How many pixels of the screenshot have the colour `bgr`, give or take `tolerance` per
+    channel (antialiased edges blend with the background)."""
+    import cv2
+    import numpy as np
+
+    image = cv2.imread(str(png), cv2.IMREAD_COLOR)
+    assert image is not None, png
+    near = np.abs(image.astype(np.int16) - np.array(bgr, np.int16)) <= tolerance
+    return int(np.count_nonzero(near.all(axis=2)))
+
+
+def _open_in_layout(log: Path, shots: Path) -> dict[str, Any]:
     run = subprocess.run(
         ["node", str(DRIVER), str(MODULES), CHROMIUM, str(shots), "--layout", str(LAYOUT),
-         str(LOOP_CLOSURE_AT), str(output)],
+         str(LOOP_CLOSURE_AT), str(log)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
     [result] = [json.loads(line) for line in run.stdout.splitlines()]
-    assert set(OUR_TOPICS) <= set(result["topics"]), result
+    return dict(result)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(bool(_missing()), reason=_missing() or "ready")
+def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
+    tmp_path: Path,
+) -> None:
+    """docs/foxglove_layout.json over `optimize` of the ROS 2 output of the `annotate`
+    defaults: the run drives the viewer; the screenshot (docs/images/foxglove_loop_closure.png)
+    is looked at. The annotated log alone, without the paths, has neither path colour."""
+    pytest.importorskip("gtsam")
+    annotated, output = tmp_path / "ros2.annotated.mcap", tmp_path / "ros2.layout.mcap"
+    sample = REPO / "sample_logs" / PROFILES["ros2"]
+    assert main(["annotate", str(sample), "-o", str(annotated)]) == 0
+    assert main(["optimize", str(annotated), "-o", str(output)]) == 0
+    shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    result = _open_in_layout(output, shots)
+    assert set(OUR_TOPICS) | set(PATHS) <= set(result["topics"]), result
     assert "No problems found" in result["problems"], result
     assert result["errors"] == [], result
     # The layout's panels are known (an unknown type says "Unknown panel type") and have data.
@@ -118,4 +150,14 @@ def test_the_layout_shows_query_match_and_loop_lines_with_no_problem(tmp_path: P
     # of query frame 216 is in the Raw Messages panel.
     assert not [line for line in result["message"] if line.startswith("Waiting for")], result
     assert "216" in result["message"], result
-    assert (shots / f"{output.name}.layout.png").stat().st_size > 0
+    # The 3-D panel draws both paths, each in its colour: a line of the trajectory's length
+    # (the drive spans about 20 m: each line covers thousands of pixels, the odometry, wider,
+    # shows on both sides of the optimized one).
+    shot = shots / f"{output.name}.layout.png"
+    assert _pixels_of(shot, OPTIMIZED_BGR) > 1000
+    assert _pixels_of(shot, ODOMETRY_BGR) > 1000
+    # The same layout over the annotated log, which has no paths: neither colour.
+    without = _open_in_layout(annotated, shots)
+    assert "No problems found" in without["problems"], without
+    plain = shots / f"{annotated.name}.layout.png"
+    assert _pixels_of(plain, OPTIMIZED_BGR) < 50 and _pixels_of(plain, ODOMETRY_BGR) < 50

@@ -23,7 +23,13 @@ from hypothesis.extra.numpy import arrays
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
-from doseqslam_logs.export.base import OPTIMIZED_POSE_TOPIC, ExportOptions, OptimizeOptions
+from doseqslam_logs.export.base import (
+    ODOMETRY_PATH_TOPIC,
+    OPTIMIZED_PATH_TOPIC,
+    OPTIMIZED_POSE_TOPIC,
+    ExportOptions,
+    OptimizeOptions,
+)
 from doseqslam_logs.export.gtsam_graph import gtsam_information, optimize_pose_graph, to_gtsam
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import Edge, PoseGraph, build_pose_graph
@@ -188,7 +194,8 @@ def test_optimize_brings_the_drifting_drive_closer_to_the_truth(
         counts = {c.topic: c.message_count for c in source.channels()}
     with open_source(out) as source:
         out_counts = {c.topic: c.message_count for c in source.channels()}
-    assert out_counts == {**counts, OPTIMIZED_POSE_TOPIC: 240}
+    paths = dict.fromkeys([OPTIMIZED_PATH_TOPIC, ODOMETRY_PATH_TOPIC], 1)
+    assert out_counts == {**counts, OPTIMIZED_POSE_TOPIC: 240, **paths}
     assert repr(read_annotations(out).loop_closures) == repr(log.loop_closures)  # NaN != NaN
 
 
@@ -335,10 +342,14 @@ def test_a_wrong_metric_loop_edge_is_rejected_too(drifting: Path) -> None:
 
 @pytest.fixture(scope="module")
 def unverified(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """drive_loops annotated without verification (fast), as Foxglove protobuf and ROS 1,
-    and a ROS 2 sidecar."""
+    """drive_loops annotated without verification (fast), as Foxglove protobuf, ROS 1 and
+    ROS 2, and a ROS 2 sidecar."""
     folder = tmp_path_factory.mktemp("profiles")
-    logs = {"foxglove": "drive_loops.foxglove.mcap", "ros1": "drive_loops.bag"}
+    logs = {
+        "foxglove": "drive_loops.foxglove.mcap",
+        "ros1": "drive_loops.bag",
+        "ros2": "drive_loops.ros2.mcap",
+    }
     annotated = {}
     for name, log in logs.items():
         annotated[name] = folder / f"{name}.annotated.mcap"
@@ -378,6 +389,109 @@ def test_the_poses_take_the_type_of_the_logs_profile(
     assert summary["frame_id"] == "odom"
 
 
+def _path_messages(path: Path) -> dict[str, Any]:
+    """Each path topic's one message: its log time, schema, channel and decoded message (the
+    mcap ROS 2 decoder, rosbags for ROS 1, the protobuf decoder); and the file's first log
+    time."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoders
+    from mcap_ros2.decoder import DecoderFactory as Ros2Decoders
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    found: dict[str, Any] = {}
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        first = min(m.log_time for _, _, m in reader.iter_messages())
+        for schema, channel, message in reader.iter_messages(topics=PATH_TOPICS):
+            assert channel.topic not in found  # one message a path
+            if channel.message_encoding == "ros1":
+                store = get_typestore(Stores.EMPTY)
+                store.register(get_types_from_msg(schema.data.decode(), "nav_msgs/msg/Path"))
+                decoded = store.deserialize_ros1(message.data, "nav_msgs/msg/Path")
+            else:
+                ros2 = channel.message_encoding == "cdr"
+                factory = Ros2Decoders() if ros2 else ProtobufDecoders()
+                decoder = factory.decoder_for(channel.message_encoding, schema)
+                assert decoder is not None
+                decoded = decoder(message.data)
+            found[channel.topic] = (message.log_time, schema, channel, decoded)
+    return {"first_log_time": first, "paths": found}
+
+
+PATH_TOPICS = [OPTIMIZED_PATH_TOPIC, ODOMETRY_PATH_TOPIC]
+
+
+def _path_arrays(message: Any) -> tuple[Any, Any, Any]:
+    """Stamps (ns; None for PosesInFrame, whose poses have none), positions, quaternions."""
+    poses = [getattr(p, "pose", p) for p in message.poses]
+    positions = np.array([[p.position.x, p.position.y, p.position.z] for p in poses])
+    quaternions = np.array([[getattr(p.orientation, a) for a in "xyzw"] for p in poses])
+    stamps = None
+    if message.poses and hasattr(message.poses[0], "header"):
+        stamps = np.array([p.header.stamp.sec * 10**9 + p.header.stamp.nanosec
+                           for p in message.poses])  # fmt: skip
+    return stamps, positions, quaternions
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("profile", "path_type", "schema_encoding"),
+    [
+        ("ros2", "nav_msgs/msg/Path", "ros2msg"),
+        ("ros1", "nav_msgs/Path", "ros1msg"),
+        ("foxglove", "foxglove.PosesInFrame", "protobuf"),
+    ],
+)
+def test_the_optimized_and_odometry_paths_are_one_message_each_at_the_start(
+    unverified: dict[str, Path], tmp_path: Path, profile: str, path_type: str, schema_encoding: str
+) -> None:
+    out = tmp_path / "optimized.mcap"
+    assert main(["optimize", str(unverified[profile]), "-o", str(out)]) == 0
+    found = _path_messages(out)
+    assert sorted(found["paths"]) == sorted(PATH_TOPICS)
+    optimized = read_poses(out, OPTIMIZED_POSE_TOPIC)
+    odometry = read_poses(out, "/odom").interpolate(optimized.times_ns)
+    expected = {OPTIMIZED_PATH_TOPIC: optimized, ODOMETRY_PATH_TOPIC: odometry}
+    for topic, (log_time, schema, channel, message) in found["paths"].items():
+        # At the log's first message: a viewer seeking anywhere has the whole trajectory.
+        assert log_time == found["first_log_time"]
+        assert (schema.name, schema.encoding) == (path_type, schema_encoding)
+        if profile == "ros1":
+            assert channel.metadata["md5sum"] == "6227e2b7e9cce15051f669a5e197bbf7"
+        stamps, positions, quaternions = _path_arrays(message)
+        frame_id = message.header.frame_id if hasattr(message, "header") else message.frame_id
+        assert frame_id == "odom"
+        assert len(positions) == 240
+        if stamps is not None:
+            np.testing.assert_array_equal(stamps, optimized.times_ns)
+        np.testing.assert_allclose(positions, expected[topic].positions, atol=1e-9)
+        np.testing.assert_allclose(quaternions, expected[topic].quaternions_xyzw, atol=1e-9)
+    # The two are different trajectories: the loop edges moved the optimized one.
+    assert not np.allclose(optimized.positions, odometry.positions, atol=1e-3)
+
+
+@pytest.mark.slow
+def test_optimize_defaults_to_the_odometry_annotate_recorded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Annotated with --odometry-topic /ground_truth/pose, optimized with no topic given: the
+    graph is built on the ground truth (frame map), not on the log's rule's /odom."""
+    annotated, out = tmp_path / "annotated.mcap", tmp_path / "optimized.mcap"
+    asked = ["--no-verify", "--odometry-topic", "/ground_truth/pose"]
+    assert (
+        main(["annotate", str(SAMPLES / "drive_loops.ros2.mcap"), "-o", str(annotated), *asked])
+        == 0
+    )
+    capsys.readouterr()
+    assert main(["optimize", str(annotated), "-o", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["frame_id"] == "map"
+    found = _path_messages(out)["paths"]
+    _, positions, _ = _path_arrays(found[ODOMETRY_PATH_TOPIC][3])
+    optimized = read_poses(out, OPTIMIZED_POSE_TOPIC)
+    truth = read_poses(out, "/ground_truth/pose").interpolate(optimized.times_ns)
+    np.testing.assert_allclose(positions, truth.positions, atol=1e-9)
+
+
 @pytest.mark.slow
 def test_a_sidecar_takes_its_poses_from_the_original_log(
     unverified: dict[str, Path], tmp_path: Path
@@ -393,6 +507,8 @@ def test_a_sidecar_takes_its_poses_from_the_original_log(
         "/doseqslam/loop_closures": "doseqslam_msgs/msg/LoopClosure",
         "/doseqslam/sequences": "doseqslam_msgs/msg/Sequence",
         OPTIMIZED_POSE_TOPIC: "geometry_msgs/msg/PoseStamped",
+        OPTIMIZED_PATH_TOPIC: "nav_msgs/msg/Path",
+        ODOMETRY_PATH_TOPIC: "nav_msgs/msg/Path",
     }
     assert len(read_poses(out, OPTIMIZED_POSE_TOPIC)) == 240
     original = tmp_path / "original.mcap"  # a copy: the refusal is what is tested
@@ -485,10 +601,25 @@ def _records(path: Path) -> dict[str, Any]:
     return {"messages": messages, "attachments": attachments, "metadata": metadata, "p": profile}
 
 
+def _schemas(path: Path) -> dict[str, tuple[str, str, str]]:
+    """Each channel's schema: name, encoding, text."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    schemas = summary.schemas
+    return {
+        c.topic: (schemas[c.schema_id].name, schemas[c.schema_id].encoding,
+                  schemas[c.schema_id].data.decode())
+        for c in summary.channels.values()
+    }  # fmt: skip
+
+
 def test_a_json_profile_gets_pose_in_frame_as_json_and_every_record_is_copied(
     tmp_path: Path,
 ) -> None:
-    from doseqslam_logs.sinks.pose_topic import PoseStream, write_with_poses
+    from doseqslam_logs.sinks.pose_topic import PathMessage, PoseStream, write_with_poses
 
     log, out, again = tmp_path / "log.mcap", tmp_path / "out.mcap", tmp_path / "again.mcap"
     _small_json_log(log)
@@ -503,8 +634,9 @@ def test_a_json_profile_gets_pose_in_frame_as_json_and_every_record_is_copied(
         quaternions_xyzw=quaternions,
         foxglove_encoding="json",
     )
-    summary = write_with_poses(log, out, stream)
-    assert (summary.copied_messages, summary.pose_messages) == (4, 3)
+    path = PathMessage(OPTIMIZED_PATH_TOPIC, "odom", stream.stamps_ns, positions, quaternions)
+    summary = write_with_poses(log, out, stream, paths=[path])
+    assert (summary.copied_messages, summary.pose_messages, summary.path_messages) == (4, 3, 1)
     with open_source(out) as source:
         channel = next(c for c in source.channels() if c.topic == OPTIMIZED_POSE_TOPIC)
         first = next(iter(source.messages(OPTIMIZED_POSE_TOPIC))).message
@@ -516,15 +648,35 @@ def test_a_json_profile_gets_pose_in_frame_as_json_and_every_record_is_copied(
     np.testing.assert_allclose(poses.quaternions_xyzw, quaternions)
     before, after = _records(log), _records(out)
     ours = [m for m in after["messages"] if m[0] == OPTIMIZED_POSE_TOPIC]
-    assert [m for m in after["messages"] if m[0] != OPTIMIZED_POSE_TOPIC] == before["messages"]
-    assert [m[1] for m in after["messages"]] == [10, 15, 20, 25, 30, 40, 45]  # interleaved
+    copied = [m for m in after["messages"] if m[0] not in (OPTIMIZED_POSE_TOPIC, path.topic)]
+    assert copied == before["messages"]
+    # The path first, at the log's first message time; the poses interleaved.
+    assert [m[1] for m in after["messages"]] == [10, 10, 15, 20, 25, 30, 40, 45]
+    assert after["messages"][0][0] == OPTIMIZED_PATH_TOPIC
     assert len(ours) == 3
+    path_message = json.loads(after["messages"][0][2])
+    assert path_message == {
+        "timestamp": {"sec": 5, "nsec": 3},  # its last pose's
+        "frame_id": "odom",
+        "poses": [
+            {
+                "position": dict(zip("xyz", p, strict=True)),
+                "orientation": dict(zip("xyzw", q, strict=True)),
+            }
+            for p, q in zip(positions.tolist(), quaternions.tolist(), strict=True)
+        ],
+    }
+    schemas = _schemas(out)
+    assert schemas[OPTIMIZED_PATH_TOPIC][:2] == ("foxglove.PosesInFrame", "jsonschema")
+    # The JSON schema is the one Foxglove's parser takes: no $ref, no type arrays.
+    assert "$ref" not in schemas[OPTIMIZED_PATH_TOPIC][2]
+    assert '"type": [' not in schemas[OPTIMIZED_PATH_TOPIC][2]
     assert (after["attachments"], after["metadata"], after["p"]) == (
         before["attachments"],
         before["metadata"],
         before["p"],
     )
     # Written again over its own output's topic: replaced, not doubled.
-    replaced = write_with_poses(out, again, stream)
+    replaced = write_with_poses(out, again, stream, paths=[path])
     assert replaced.replaced_topic
     assert _records(again)["messages"] == after["messages"]

@@ -37,8 +37,9 @@ REPO = Path(__file__).resolve().parents[1]
 # their metadata lists it and their hash moves); then #35's one feature extraction a frame
 # (shared_features: a new verification parameter, and the segmentation takes the features ORB
 # would keep from the verification's, in their order, so drive_loops has 32 sequences instead
-# of 33, on purpose; the samples' verified pairs are the same counts).
-BYTES_REFERENCE = "303825c"
+# of 33, on purpose; the samples' verified pairs are the same counts); then the run's odometry
+# topic recorded in the metadata (a new key, odometry_topic: /odom for every sample).
+BYTES_REFERENCE = "db3d6dc"
 REFERENCE = BYTES_REFERENCE
 
 

@@ -108,6 +108,7 @@ def test_metadata_of_an_older_version_takes_defaults() -> None:
     entries = {"tool_version": "0.1.0", "parameters": '{"threshold": 0.75}', "frames_used": "84"}
     meta = RunMetadata.from_entries(entries)
     assert meta.frames_used == 84 and meta.verification == "off" and meta.start_ns is None
+    assert meta.odometry_topic == ""  # not recorded: export and optimize take the log's rule
     assert meta.parameters == {"threshold": 0.75} and meta.recorded == entries
     with pytest.raises(ValueError):
         RunMetadata.from_entries({**entries, "frames_used": "many"})

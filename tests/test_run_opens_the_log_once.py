@@ -21,7 +21,7 @@ from doseqslam_logs.sources import open_source, opened
 from doseqslam_logs.sources.base import ChannelInfo
 from doseqslam_logs.sources.handles import HandlePool
 from doseqslam_logs.sources.mcap_source import McapSource
-from doseqslam_logs.sources.poses import default_pose_topic
+from doseqslam_logs.sources.poses import default_pose_topic, run_pose_topic
 from doseqslam_logs.sources.rosbags_source import RosbagsSource
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
@@ -183,6 +183,24 @@ def test_one_rule_picks_the_default_pose_topic() -> None:
     assert default_pose_topic(_Listed(image, truth, odom)) == "/odom"  # Odometry first
     assert default_pose_topic(_Listed(image, truth)) == "/ground_truth/pose"  # else any pose
     assert default_pose_topic(_Listed(image)) is None
+    # Every pose type is a candidate, in either ROS spelling, Odometry before the others.
+    for kind in (
+        "geometry_msgs/msg/PoseWithCovarianceStamped",
+        "geometry_msgs/PoseWithCovarianceStamped",
+        "geometry_msgs/PoseStamped",
+        "foxglove.PoseInFrame",
+    ):
+        assert default_pose_topic(_Listed(image, ("/pose", kind))) == "/pose"
+        assert default_pose_topic(_Listed(("/pose", kind), ("/odom", "nav_msgs/Odometry"))) == (
+            "/odom"
+        )
+    # Never our own topics (the optimized pose of a log optimized before).
+    assert default_pose_topic(_Listed(("/doseqslam/optimized_pose", truth[1]))) is None
+    # A run's odometry: the topic asked for ("" none), else the rule's.
+    assert run_pose_topic(_Listed(image, truth, odom), None) == "/odom"
+    assert run_pose_topic(_Listed(image, truth, odom), "/ground_truth/pose") == "/ground_truth/pose"
+    assert run_pose_topic(_Listed(image, truth, odom), "") == ""
+    assert run_pose_topic(_Listed(image), None) == ""
 
 
 @pytest.mark.slow

@@ -121,6 +121,13 @@ def test_the_json_schemas_parse_as_foxglove_and_lichtblick_parse_them(name: str)
     assert {"$ref", "$defs"}.isdisjoint(_keys(schema))
 
 
+@pytest.mark.parametrize("name", ["foxglove.PoseInFrame", "foxglove.PosesInFrame"])
+def test_the_json_pose_schemas_optimize_writes_parse_too(name: str) -> None:
+    schema = json.loads(read_schema(f"json/{name}.json"))
+    parse_json_schema(schema)
+    assert {"$ref", "$defs"}.isdisjoint(_keys(schema))
+
+
 def _keys(node: Any) -> set[str]:
     if isinstance(node, dict):
         return set(node).union(*(_keys(value) for value in node.values()))

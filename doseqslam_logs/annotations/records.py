@@ -555,6 +555,9 @@ class RunMetadata:
     # pipeline.feature_health's measurements and warnings, only when the frames were too poor
     # in features to segment or verify ("": a healthy run, or a version before it existed).
     feature_poor_json: str = ""
+    # The pose topic the run took as the robot's odometry (sources.poses.run_pose_topic), which
+    # export and optimize default to ("": none, or a version before it was recorded).
+    odometry_topic: str = ""
     tool: str = "doseqslam-logs"
     recorded: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
 
@@ -569,6 +572,7 @@ class RunMetadata:
         ("source_file", "source_file"),
         ("source_sha256", "source_sha256"),
         ("image_topic", "image_topic"),
+        ("odometry_topic", "odometry_topic"),
         ("time_source", "time_source"),
         ("start_ns", "start_ns"),
         ("end_ns", "end_ns"),

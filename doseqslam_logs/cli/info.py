@@ -85,6 +85,7 @@ def run_summary(run: RunMetadata) -> dict[str, Any]:
         "sequences": run.sequences,
         "frames_used": run.frames_used,
         "image_topic": run.image_topic,
+        "odometry_topic": run.odometry_topic or None,
         "source_file": run.source_file,
         "source_sha256": run.source_sha256,
     }
@@ -101,6 +102,7 @@ def _run_line(run: RunMetadata) -> str:
         f"  annotated by doseqslam-logs {run.tool_version}: {run.method}, parameters "
         f"{run.parameters_hash}, {verified}, {run.sequences} sequences over {run.frames_used} "
         f"frames of {run.image_topic} from {run.source_file}"
+        + (f", odometry {run.odometry_topic}" if run.odometry_topic else "")
     )
 
 

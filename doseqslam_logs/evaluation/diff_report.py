@@ -198,7 +198,8 @@ def _positions(
     if log.frame_times is None:
         return None
     with open_source(path) as source:
-        topic = topic or default_pose_topic(source)
+        # Ground truth, else the run's recorded odometry, else the log's default pose topic.
+        topic = topic or log.metadata.odometry_topic or default_pose_topic(source)
         if topic is None:
             return None
         track = read_poses(source, topic)

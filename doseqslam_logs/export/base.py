@@ -1,5 +1,5 @@
 """What every export format provides: options in, text out, one summary line for people; and
-what `optimize` is asked (`OptimizeOptions`) and writes (`OPTIMIZED_POSE_TOPIC`).
+what `optimize` is asked (`OptimizeOptions`) and writes (`OPTIMIZED_POSE_TOPIC`, the paths).
 
 Options and their defaults live here, apart from the pose-graph code (SciPy), so that the
 command line can show them without importing it.
@@ -70,6 +70,10 @@ class Exporter:
 
 
 OPTIMIZED_POSE_TOPIC = OUR_TOPIC_PREFIX + "optimized_pose"
+# The whole trajectories as one message each (nav_msgs/Path, foxglove.PosesInFrame), which a
+# viewer draws as a line: the optimized one and the odometry it was optimized from.
+OPTIMIZED_PATH_TOPIC = OUR_TOPIC_PREFIX + "optimized_path"
+ODOMETRY_PATH_TOPIC = OUR_TOPIC_PREFIX + "odometry_path"
 
 LoopKernel = Literal["cauchy", "huber", "none"]
 LOOP_KERNELS: tuple[LoopKernel, ...] = ("cauchy", "huber", "none")

@@ -110,7 +110,7 @@ def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
     from .odometry_calibration import calibrate_odometry, calibrated_graph
     from .pose_graph import build_pose_graph, with_pose_topic
 
-    options = with_pose_topic(options, log.path)
+    options = with_pose_topic(options, log)
     graph = build_pose_graph(log, options)
     if not options.calibrate_odometry:
         return ExportResult(g2o_lines(graph, options), graph.summary)

@@ -5,7 +5,9 @@ The graph is `pose_graph.build_pose_graph`'s (the g2o export's), optimized by
 output holds every record of the annotated log (or sidecar) plus `OPTIMIZED_POSE_TOPIC`: one
 pose per vertex, stamped at the vertex's detector time, logged at its image's log time, in the
 odometry's frame_id and frame (body poses, like the odometry), typed for the log's profile
-(`sinks.pose_topic`).
+(`sinks.pose_topic`); and the same vertices as two whole paths at the log's first message,
+`OPTIMIZED_PATH_TOPIC` and `ODOMETRY_PATH_TOPIC` (the graph's initial poses: the odometry at
+the vertices), which a viewer draws as lines.
 """
 
 from __future__ import annotations
@@ -20,9 +22,15 @@ import numpy.typing as npt
 from ..annotations.reader import AnnotatedLog, read_annotations
 from ..errors import OutputError
 from ..sinks.atomic import check_output_path
-from ..sinks.pose_topic import FoxgloveEncoding, PoseStream, write_with_poses
+from ..sinks.pose_topic import FoxgloveEncoding, PathMessage, PoseStream, write_with_poses
 from ..sources import open_source
-from .base import OPTIMIZED_POSE_TOPIC, ExportOptions, OptimizeOptions
+from .base import (
+    ODOMETRY_PATH_TOPIC,
+    OPTIMIZED_PATH_TOPIC,
+    OPTIMIZED_POSE_TOPIC,
+    ExportOptions,
+    OptimizeOptions,
+)
 from .gtsam_graph import OptimizedGraph, import_gtsam, optimize_pose_graph
 from .loops import frame_times_ns
 from .pose_graph import PoseGraph, build_pose_graph, with_pose_topic
@@ -52,6 +60,7 @@ class OptimizeResult:
         return {
             "output": str(self.output_path),
             "topic": OPTIMIZED_POSE_TOPIC,
+            "path_topics": [OPTIMIZED_PATH_TOPIC, ODOMETRY_PATH_TOPIC],
             "frame_id": self.frame_id,
             "vertices": len(self.graph.vertex_ids),
             "odometry_edges": len(self.graph.odometry_edges),
@@ -95,37 +104,47 @@ def optimize_log(
     optimize_options: OptimizeOptions | None = None,
 ) -> OptimizeResult:
     """Optimize the pose graph of the annotated log (or sidecar) `log` and write `output`:
-    its records plus `OPTIMIZED_POSE_TOPIC`. `options` are the g2o export's (odometry topic,
-    `poses_log` for a sidecar, stride, loop-edge model).
+    its records plus `OPTIMIZED_POSE_TOPIC` and the two paths. `options` are the g2o
+    export's (odometry topic, `poses_log` for a sidecar, stride, loop-edge model).
 
     Raises UsageError (no odometry topic, GTSAM not installed), SourceError (not an annotated
     log; the pose topic missing, empty or not a pose type), OutputError (an output that would
     replace the input or is not a regular file).
     """
     log, output = Path(log), Path(output)
-    options = with_pose_topic(options, log)
     check_output_path(output)
     for source in (log, options.poses_log):
         if source is not None and output.exists() and output.resolve() == source.resolve():
             raise OutputError(f"{output}: the output would replace the input {source}")
     import_gtsam()  # before any reading: say at once that the extra is missing
     annotated = read_annotations(log)
+    options = with_pose_topic(options, annotated)
     graph = build_pose_graph(annotated, options)
     optimized = optimize_pose_graph(graph, optimize_options)
     poses_log = options.poses_log or log
     assert options.odometry_topic is not None  # with_pose_topic set it
     frame_id, encoding = odometry_channel(poses_log, options.odometry_topic)
     ids = graph.vertex_ids
+    stamps = frame_times_ns(annotated)[ids]
     stream = PoseStream(
         topic=OPTIMIZED_POSE_TOPIC,
         frame_id=frame_id,
         log_times_ns=_log_times(annotated, ids),
-        stamps_ns=frame_times_ns(annotated)[ids],
+        stamps_ns=stamps,
         positions=optimized.positions,
         quaternions_xyzw=optimized.quaternions_xyzw,
         foxglove_encoding=encoding,
     )
-    written = write_with_poses(log, output, stream)
+    odometry = graph.poses
+    paths = (
+        PathMessage(
+            OPTIMIZED_PATH_TOPIC, frame_id, stamps, optimized.positions, optimized.quaternions_xyzw
+        ),
+        PathMessage(
+            ODOMETRY_PATH_TOPIC, frame_id, stamps, odometry.positions, odometry.quaternions_xyzw
+        ),
+    )
+    written = write_with_poses(log, output, stream, paths=paths)
     return OptimizeResult(output, graph, optimized, frame_id, written.pose_messages)
 
 

@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -135,18 +134,22 @@ class PoseGraph:
         return notes
 
 
-def with_pose_topic(options: ExportOptions, log: Path) -> ExportOptions:
-    """`options` with a pose topic: the one given, else the one annotate's rule picks
-    (`default_pose_topic`: the first nav_msgs/Odometry topic, else the first of another pose
-    type) in the log the poses come from (`options.poses_log`, else the annotated log).
+def with_pose_topic(options: ExportOptions, log: AnnotatedLog) -> ExportOptions:
+    """`options` with a pose topic: the one given, else the odometry the annotating run
+    recorded, else the one annotate's rule picks (`default_pose_topic`: the first
+    nav_msgs/Odometry topic, else the first of another pose type), in the log the poses come
+    from (`options.poses_log`, else the annotated log).
 
-    Raises UsageError when that log has no pose topic (a sidecar without --poses-from).
+    Raises UsageError when that log has none (a sidecar without --poses-from).
     """
     if options.odometry_topic is not None:
         return options
-    poses_log = options.poses_log or log
+    poses_log = options.poses_log or log.path
+    recorded = log.metadata.odometry_topic
     with open_source(poses_log) as source:
-        topic = default_pose_topic(source)
+        # Not in a sidecar, which holds our channels only: then the rule finds none either.
+        present = any(channel.topic == recorded for channel in source.channels())
+        topic = recorded if recorded and present else default_pose_topic(source)
     if topic is None:
         raise UsageError(
             f"{poses_log}: no pose topic ({', '.join(POSE_TYPES)}): give --odometry-topic, or "

@@ -43,7 +43,7 @@ def export(log: AnnotatedLog, options: ExportOptions) -> ExportResult:
     # Here, not above: the pose graph imports SciPy, FORMATS (the command line) needs none.
     from .pose_graph import build_pose_graph, with_pose_topic
 
-    options = with_pose_topic(options, log.path)
+    options = with_pose_topic(options, log)
     graph = build_pose_graph(log, options)
     summary = f"{len(graph.vertex_ids)} poses of {options.odometry_topic} at camera times"
     if graph.frames_outside_odometry:

@@ -50,7 +50,7 @@ from ..sources.frame import Frame
 from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.images import decode_gray
 from ..sources.mcap_source import McapSource
-from ..sources.poses import PoseTrack
+from ..sources.poses import PoseTrack, run_pose_topic
 from ..sources.salvage import SalvageReport, salvage_mcap
 from ..verification import (
     DEFAULT_VERIFICATION,
@@ -274,12 +274,16 @@ def verify_decisions(
 
 
 def visualization_of(
-    annotations: Annotations, log: Log, topic: str, track: PoseTrack | None = None
+    annotations: Annotations,
+    log: Log,
+    topic: str,
+    track: PoseTrack | None = None,
+    pose_topic: str | None = None,
 ) -> Visualization:
     """What the visualization channels draw for these annotations of the log: the trajectory
-    of its default pose topic (`track` when the run read it already)."""
+    of `pose_topic`, else of its default pose topic (`track` when the run read it already)."""
     loops = visual_loops(annotations.messages)
-    return Visualization(topic, loops, read_trajectory(log, track=track))
+    return Visualization(topic, loops, read_trajectory(log, pose_topic, track))
 
 
 def _hash_in_background(path: Path) -> Future[str]:
@@ -343,8 +347,10 @@ def run_metadata(
     recovery: SalvageReport | None = None,
     promise: Promise | None = None,
     unattributed: int = 0,
+    odometry_topic: str = "",
 ) -> RunMetadata:
-    """The `doseqslam` metadata record of a run without verification."""
+    """The `doseqslam` metadata record of a run without verification; `odometry_topic`: the
+    run's pose topic (`run_pose_topic`)."""
     return RunMetadata(
         tool_version=__version__,
         method=params.method,
@@ -354,6 +360,7 @@ def run_metadata(
         source_file=printable_name(log),
         source_sha256=sha256,
         image_topic=topic,
+        odometry_topic=odometry_topic,
         time_source=options.time_source,
         start_ns=options.start_ns,
         end_ns=options.end_ns,
@@ -697,8 +704,9 @@ class _Run:
         verifies = options.verification is not None
         if verifies:
             pose_topic = options.odometry_topic
-        else:
-            pose_topic = None if options.visualization and not options.sidecar else ""
+        else:  # the topic drawn: the one asked for, else (also for "none") the log's default
+            draws = options.visualization and not options.sidecar
+            pose_topic = (options.odometry_topic or None) if draws else ""
         camera_info = verifies and options.intrinsics is None
         return SideTopics.for_run(self.log.source, image_topic, pose_topic, camera_info)
 
@@ -770,6 +778,7 @@ class _Run:
             log.recovery,
             replayed.promise,
             replayed.unattributed,
+            run_pose_topic(log.source, options.odometry_topic),
         )
         if verification is not None:
             metadata = verification.recorded_in(metadata)
@@ -793,7 +802,10 @@ class _Run:
         """The write stage: the visualization channels drawn, then the output written."""
         options, source = self.options, self.log.source
         if options.visualization and not options.sidecar:
-            drawn = visualization_of(annotations, source, topic, track)
+            # The odometry asked for, if any (not "none": the log's default is still drawn).
+            drawn = visualization_of(
+                annotations, source, topic, track, options.odometry_topic or None
+            )
             annotations = replace(annotations, visualization=drawn)
         self.observer.started("write")
         total = sum(c.message_count for c in source.channels())

@@ -59,9 +59,9 @@ from ..sources.image_header import DEFAULT_MAX_PIXELS
 from ..sources.poses import (
     PoseReader,
     PoseTrack,
-    default_pose_topic,
     describe_skipped,
     read_poses,
+    run_pose_topic,
 )
 from ..verification.geometry import FrameFeatures, Intrinsics, Verdict, extract_features
 from ..verification.metric_pose import (
@@ -430,7 +430,7 @@ def read_odometry(
     topic as the replay's pass read it (None: read here). Its PoseTrack is kept (`track`) for
     the trajectory the visualization draws."""
     with opened(log) as source:
-        topic = default_pose_topic(source) if asked is None else asked
+        topic = run_pose_topic(source, asked)
         if not topic:
             return Odometry(None)
         try:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from ..errors import SourceError
 from ..sources.base import ImageMessage, SideMessage, Source
 from ..sources.camera_info import CameraInfoReader, CameraInfoSearch
-from ..sources.poses import PoseReader, PoseTrack, default_pose_topic
+from ..sources.poses import PoseReader, PoseTrack, run_pose_topic
 
 
 @dataclass
@@ -35,7 +35,7 @@ class SideTopics:
         Raises SourceError for an asked pose topic that is missing or not a pose type (as
         reading it later would, before the replay spends its time).
         """
-        topic = default_pose_topic(source) if pose_topic is None else pose_topic
+        topic = run_pose_topic(source, pose_topic)
         poses = PoseReader(source, topic) if topic else None
         info = CameraInfoReader(source, image_topic) if camera_info else None
         return cls(poses, info if info is not None and info.search.topic else None)

@@ -1,21 +1,29 @@
-"""An MCAP copied record for record, plus one pose topic (the `optimize` command's output).
+"""An MCAP copied record for record, plus one pose topic and whole paths (the `optimize`
+command's output).
 
-The pose messages use the type a viewer draws in the file's profile, as the odometry:
+The messages use the types a viewer draws in the file's profile, as the odometry:
 
-* ROS 2 profile: `geometry_msgs/msg/PoseStamped` (CDR);
-* ROS 1 profile: `geometry_msgs/PoseStamped` (ROS 1 serialization, md5sum in the channel);
-* any other profile (Foxglove): `foxglove.PoseInFrame`, protobuf when the odometry channel is
-  protobuf (the `protobuf` extra, which reading such a log already needs), else JSON.
+* ROS 2 profile: `geometry_msgs/msg/PoseStamped` per pose, `nav_msgs/msg/Path` per path (CDR);
+* ROS 1 profile: `geometry_msgs/PoseStamped`, `nav_msgs/Path` (ROS 1 serialization, md5sum in
+  the channel);
+* any other profile (Foxglove): `foxglove.PoseInFrame`, `foxglove.PosesInFrame`, protobuf when
+  the odometry channel is protobuf (the `protobuf` extra, which reading such a log already
+  needs), else JSON.
+
+A pose topic carries one pose per message, which a viewer shows as the current pose only; a
+path is the whole trajectory in one message, written before the log's first message so that a
+viewer seeking anywhere draws all of it.
 
 Every record of the input (schemas, channels, messages, attachments, metadata) is copied
-unchanged, except an earlier channel of the same topic (a log optimized twice), which the new
-poses replace. The output appears atomically (`atomic`).
+unchanged, except earlier channels of the topics written (a log optimized twice), which the
+new messages replace. The output appears atomically (`atomic`).
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -40,7 +48,9 @@ I64 = npt.NDArray[np.int64]
 
 FoxgloveEncoding = Literal["protobuf", "json"]
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+PATH = "nav_msgs/msg/Path"
 POSE_IN_FRAME = "foxglove.PoseInFrame"
+POSES_IN_FRAME = "foxglove.PosesInFrame"
 
 
 @dataclass(frozen=True)
@@ -54,6 +64,18 @@ class PoseStream:
     positions: F64  # (N, 3)
     quaternions_xyzw: F64  # (N, 4)
     foxglove_encoding: FoxgloveEncoding = "json"  # for profiles other than ros1 / ros2
+
+
+@dataclass(frozen=True)
+class PathMessage:
+    """A whole trajectory as one message on `topic`, in the pose stream's encoding; each pose
+    stamped at `stamps_ns`, the message at the last of them."""
+
+    topic: str
+    frame_id: str
+    stamps_ns: I64
+    positions: F64  # (N, 3)
+    quaternions_xyzw: F64  # (N, 4)
 
 
 @dataclass(frozen=True)
@@ -77,77 +99,130 @@ class _PoseEncoder:
             self.typestore = get_typestore(store)
 
     def schema(self) -> _PoseSchema:
+        """The schema of one pose a message."""
+        return self._schema(POSE_STAMPED, POSE_IN_FRAME)
+
+    def path_schema(self) -> _PoseSchema:
+        """The schema of a whole path a message."""
+        return self._schema(PATH, POSES_IN_FRAME)
+
+    def _schema(self, ros_type: str, foxglove_type: str) -> _PoseSchema:
         if self.typestore is not None:
             version = 1 if self.profile == "ros1" else 2
-            text, md5 = self.typestore.generate_msgdef(POSE_STAMPED, ros_version=version)
+            text, md5 = self.typestore.generate_msgdef(ros_type, ros_version=version)
             if version == 1:
-                return _PoseSchema(
-                    "geometry_msgs/PoseStamped", "ros1msg", text.encode(), "ros1", {"md5sum": md5}
-                )
-            return _PoseSchema(POSE_STAMPED, "ros2msg", text.encode(), "cdr", {})
+                name = ros_type.replace("/msg/", "/")
+                return _PoseSchema(name, "ros1msg", text.encode(), "ros1", {"md5sum": md5})
+            return _PoseSchema(ros_type, "ros2msg", text.encode(), "cdr", {})
         if self.foxglove_encoding == "protobuf":
-            from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
             from mcap_protobuf.schema import build_file_descriptor_set
 
-            data = build_file_descriptor_set(PoseInFrame).SerializeToString()
-            return _PoseSchema(POSE_IN_FRAME, "protobuf", data, "protobuf", {})
-        data = read_schema(f"json/{POSE_IN_FRAME}.json").encode()
-        return _PoseSchema(POSE_IN_FRAME, "jsonschema", data, "json", {})
+            message = _protobuf_class(foxglove_type)
+            data = build_file_descriptor_set(message).SerializeToString()
+            return _PoseSchema(foxglove_type, "protobuf", data, "protobuf", {})
+        data = read_schema(f"json/{foxglove_type}.json").encode()
+        return _PoseSchema(foxglove_type, "jsonschema", data, "json", {})
 
     def encode(self, frame_id: str, stamp_ns: int, position: F64, quaternion: F64) -> bytes:
-        xyz = dict(zip("xyz", (float(v) for v in position), strict=True))
-        xyzw = dict(zip("xyzw", (float(v) for v in quaternion), strict=True))
+        """One pose as a message."""
         if self.typestore is not None:
-            return self._ros(frame_id, stamp_ns, xyz, xyzw)
+            return self._serialize(self._ros_pose(frame_id, stamp_ns, position, quaternion))
         if self.foxglove_encoding == "protobuf":
-            return self._protobuf(frame_id, stamp_ns, xyz, xyzw)
-        message = {
-            "timestamp": time_dict(stamp_ns),
-            "frame_id": frame_id,
-            "pose": {"position": xyz, "orientation": xyzw},
-        }
-        return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+            from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 
-    def _ros(
-        self, frame_id: str, stamp_ns: int, xyz: dict[str, float], xyzw: dict[str, float]
-    ) -> bytes:
-        store: Any = self.typestore
-        types = store.types
+            message = PoseInFrame(frame_id=frame_id, pose=_protobuf_pose(position, quaternion))
+            _set_timestamp(message, stamp_ns)
+            return bytes(message.SerializeToString())
+        pose = {"timestamp": time_dict(stamp_ns), "frame_id": frame_id}
+        return _json({**pose, "pose": _json_pose(position, quaternion)})
+
+    def encode_path(self, path: PathMessage) -> bytes:
+        """A whole path as one message, stamped at its last pose."""
+        stamp_ns = int(path.stamps_ns[-1]) if len(path.stamps_ns) else 0
+        poses = zip(path.stamps_ns, path.positions, path.quaternions_xyzw, strict=True)
+        if self.typestore is not None:
+            types = self.typestore.types
+            stamped = [self._ros_pose(path.frame_id, int(t), p, q) for t, p, q in poses]
+            header = self._header(path.frame_id, stamp_ns)
+            return self._serialize(types[PATH](header=header, poses=stamped), PATH)
+        if self.foxglove_encoding == "protobuf":
+            from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+
+            message = PosesInFrame(
+                frame_id=path.frame_id, poses=[_protobuf_pose(p, q) for _, p, q in poses]
+            )
+            _set_timestamp(message, stamp_ns)
+            return bytes(message.SerializeToString())
+        document = {
+            "timestamp": time_dict(stamp_ns),
+            "frame_id": path.frame_id,
+            "poses": [_json_pose(p, q) for _, p, q in poses],
+        }
+        return _json(document)
+
+    def _header(self, frame_id: str, stamp_ns: int) -> Any:
+        types: Any = self.typestore.types  # type: ignore[union-attr]  # ROS profiles only
         sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-        header_fields: dict[str, Any] = {
+        fields: dict[str, Any] = {
             "stamp": types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
             "frame_id": frame_id,
         }
         if self.profile == "ros1":
-            header_fields["seq"] = 0
-        message = types[POSE_STAMPED](
-            header=types["std_msgs/msg/Header"](**header_fields),
+            fields["seq"] = 0
+        return types["std_msgs/msg/Header"](**fields)
+
+    def _ros_pose(self, frame_id: str, stamp_ns: int, position: F64, quaternion: F64) -> Any:
+        types: Any = self.typestore.types  # type: ignore[union-attr]  # ROS profiles only
+        xyz, xyzw = _xyz(position), _xyzw(quaternion)
+        return types[POSE_STAMPED](
+            header=self._header(frame_id, stamp_ns),
             pose=types["geometry_msgs/msg/Pose"](
                 position=types["geometry_msgs/msg/Point"](**xyz),
                 orientation=types["geometry_msgs/msg/Quaternion"](**xyzw),
             ),
         )
+
+    def _serialize(self, message: Any, typename: str = POSE_STAMPED) -> bytes:
+        store: Any = self.typestore
         if self.profile == "ros1":
-            return bytes(store.serialize_ros1(message, POSE_STAMPED))
-        return bytes(store.serialize_cdr(message, POSE_STAMPED))
+            return bytes(store.serialize_ros1(message, typename))
+        return bytes(store.serialize_cdr(message, typename))
 
-    @staticmethod
-    def _protobuf(
-        frame_id: str, stamp_ns: int, xyz: dict[str, float], xyzw: dict[str, float]
-    ) -> bytes:
-        from foxglove_schemas_protobuf.Pose_pb2 import Pose
-        from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
-        from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
-        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 
-        message = PoseInFrame(
-            frame_id=frame_id,
-            pose=Pose(position=Vector3(**xyz), orientation=Quaternion(**xyzw)),
-        )
-        seconds, nanos = divmod(stamp_ns, 1_000_000_000)
-        message.timestamp.seconds, message.timestamp.nanos = seconds, nanos
-        data: bytes = message.SerializeToString()
-        return data
+def _xyz(position: F64) -> dict[str, float]:
+    return dict(zip("xyz", (float(v) for v in position), strict=True))
+
+
+def _xyzw(quaternion: F64) -> dict[str, float]:
+    return dict(zip("xyzw", (float(v) for v in quaternion), strict=True))
+
+
+def _json_pose(position: F64, quaternion: F64) -> dict[str, Any]:
+    return {"position": _xyz(position), "orientation": _xyzw(quaternion)}
+
+
+def _json(message: dict[str, Any]) -> bytes:
+    return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+
+
+def _protobuf_class(name: str) -> Any:
+    """foxglove_schemas_protobuf's class of a Foxglove schema name."""
+    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+    from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+
+    return {POSE_IN_FRAME: PoseInFrame, POSES_IN_FRAME: PosesInFrame}[name]
+
+
+def _protobuf_pose(position: F64, quaternion: F64) -> Any:
+    from foxglove_schemas_protobuf.Pose_pb2 import Pose
+    from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+
+    return Pose(position=Vector3(**_xyz(position)), orientation=Quaternion(**_xyzw(quaternion)))
+
+
+def _set_timestamp(message: Any, stamp_ns: int) -> None:
+    message.timestamp.seconds, message.timestamp.nanos = divmod(stamp_ns, 1_000_000_000)
 
 
 @dataclass(frozen=True)
@@ -158,18 +233,28 @@ class PoseWriteSummary:
     profile: str
     copied_messages: int
     pose_messages: int
-    replaced_topic: bool  # the input had the topic already; its messages were left out
+    replaced_topic: bool  # the input had a topic written already; its messages were left out
+    path_messages: int = 0
 
 
 class _Copier:
-    """Copies an MCAP's records into `writer`, the poses interleaved by log time."""
+    """Copies an MCAP's records into `writer`, the poses interleaved by log time and the paths
+    before the first message."""
 
-    def __init__(self, writer: Writer, poses: PoseStream, encoder: _PoseEncoder) -> None:
-        self.writer, self.poses, self.encoder = writer, poses, encoder
+    def __init__(
+        self,
+        writer: Writer,
+        poses: PoseStream,
+        encoder: _PoseEncoder,
+        paths: Sequence[PathMessage] = (),
+    ) -> None:
+        self.writer, self.poses, self.encoder, self.paths = writer, poses, encoder, paths
+        self.topics = {poses.topic, *(path.topic for path in paths)}
+        self.paths_written = False
         self.schemas: dict[int, Schema] = {}
         self.schema_ids: dict[int, int] = {}
         self.channel_ids: dict[int, int] = {}
-        self.dropped: set[int] = set()  # input channels of our topic
+        self.dropped: set[int] = set()  # input channels of the topics written
         self.pose_channel: int | None = None
         # In log-time order, whatever order the frames' log times came in.
         self.order = np.argsort(poses.log_times_ns, kind="stable")
@@ -179,9 +264,30 @@ class _Copier:
     def copy(self, path: Path) -> None:
         for record in input_records(path):
             self._record(record, path)
+        self.write_paths(None)
         self.write_poses_until(None)
         for schema_id, schema in self.schemas.items():  # schemas no channel used
             self._schema(schema_id, schema)
+
+    def write_paths(self, log_time_ns: int | None) -> None:
+        """The paths, once, before the first message (at `log_time_ns`, the first message's,
+        or the first pose's when it comes earlier): a viewer seeking anywhere has them."""
+        if self.paths_written:
+            return
+        self.paths_written = True
+        if self.next_pose < len(self.order):
+            first_pose = int(self.poses.log_times_ns[self.order[self.next_pose]])
+            log_time_ns = first_pose if log_time_ns is None else min(log_time_ns, first_pose)
+        if not self.paths:
+            return
+        schema = self.encoder.path_schema()
+        schema_id = self.writer.register_schema(schema.name, schema.encoding, schema.data)
+        time = log_time_ns or 0
+        for path in self.paths:
+            channel = self.writer.register_channel(
+                path.topic, schema.message_encoding, schema_id, schema.channel_metadata
+            )
+            self.writer.add_message(channel, time, self.encoder.encode_path(path), time, 0)
 
     def write_poses_until(self, log_time_ns: int | None) -> None:
         poses = self.poses
@@ -233,7 +339,7 @@ class _Copier:
     def _channel(self, channel: Channel, path: Path) -> None:
         if channel.id in self.channel_ids or channel.id in self.dropped:
             return  # repeated in the summary section
-        if channel.topic == self.poses.topic:
+        if channel.topic in self.topics:
             self.dropped.add(channel.id)
             return
         schema_id = 0
@@ -254,6 +360,7 @@ class _Copier:
             if message.channel_id in self.dropped:
                 return
             raise SourceError(f"{path}: a message refers to the unknown channel")
+        self.write_paths(message.log_time)
         self.write_poses_until(message.log_time)
         self.writer.add_message(
             channel_id, message.log_time, message.data, message.publish_time, message.sequence
@@ -266,9 +373,11 @@ def write_with_poses(
     output_path: str | os.PathLike[str],
     poses: PoseStream,
     output_format: OutputFormat | None = None,
+    paths: Sequence[PathMessage] = (),
 ) -> PoseWriteSummary:
     """Writes `output_path`: every record of the MCAP at `input_path` plus `poses` as one
-    topic in the input's profile (module docstring).
+    topic and each of `paths` as one message on its topic, in the input's profile (module
+    docstring).
 
     Raises SourceError when the input is not a readable MCAP, OutputError when the output
     cannot be written or would overwrite the input.
@@ -288,9 +397,9 @@ def write_with_poses(
             compression=COMPRESSIONS[output_format.compression],
         )
         writer.start(profile=log.profile, library=LIBRARY)
-        copier = _Copier(writer, poses, encoder)
+        copier = _Copier(writer, poses, encoder, paths)
         copier.copy(log.path)
         writer.finish()  # type: ignore[no-untyped-call]  # mcap leaves it unannotated
     return PoseWriteSummary(
-        output, log.profile, copier.copied, copier.next_pose, bool(copier.dropped)
+        output, log.profile, copier.copied, copier.next_pose, bool(copier.dropped), len(paths)
     )

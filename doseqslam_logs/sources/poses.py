@@ -161,6 +161,14 @@ def default_pose_topic(source: Source) -> str | None:
     return candidates[0] if candidates else None
 
 
+def run_pose_topic(source: Source, asked: str | None) -> str:
+    """The one rule for a run's odometry: the topic asked for (`--odometry-topic`; "" none),
+    else `default_pose_topic` ("" when the log has none)."""
+    if asked is not None:
+        return asked
+    return default_pose_topic(source) or ""
+
+
 def read_poses(log: Log, topic: str) -> PoseTrack:
     """Every pose of `topic` in the log (an open Source, or the path of an MCAP, ROS 1 .bag,
     rosbag2 folder or .db3), with the first message's frame id.
