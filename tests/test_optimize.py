@@ -505,6 +505,7 @@ def test_a_sidecar_takes_its_poses_from_the_original_log(
         types = {c.topic: c.message_type for c in source.channels()}
     assert types == {
         "/doseqslam/loop_closures": "doseqslam_msgs/msg/LoopClosure",
+        "/doseqslam/candidates": "doseqslam_msgs/msg/LoopClosure",
         "/doseqslam/sequences": "doseqslam_msgs/msg/Sequence",
         OPTIMIZED_POSE_TOPIC: "geometry_msgs/msg/PoseStamped",
         OPTIMIZED_PATH_TOPIC: "nav_msgs/msg/Path",

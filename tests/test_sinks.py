@@ -13,6 +13,7 @@ import sys
 import textwrap
 import time
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,17 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from doseqslam_logs.annotations.records import LOOP_CLOSURE, SEQUENCE, FrameTimes
+from doseqslam_logs.annotations.reader import read_annotations
+from doseqslam_logs.annotations.records import (
+    ACCEPTED,
+    LOOP_CLOSURE,
+    REJECTED,
+    SEQUENCE,
+    SKIPPED,
+    FrameTimes,
+    LoopClosureRecord,
+    TimedMessage,
+)
 from doseqslam_logs.annotations.schema_files import read_schema
 from doseqslam_logs.annotations.writer import loop_closure_messages, sequence_messages
 from doseqslam_logs.detector.events import Candidate, SequenceDecision
@@ -38,7 +49,7 @@ ROS2_MCAP = "rosbag2_mcap_rerun_sensor_msgs/rosbag2_2025_09_10-13_03_56_0.mcap"
 ROS1_BAG = "ros1_bags_fiducials_raspicam/aruco_images.bag"
 ROSBAG2_DB3 = "ros2_bags_rosbag2_talker/sqlite3_talker"
 ROSBAG2_MCAP_DIR = "ros2_bags_rosbag2_talker/mcap_talker"
-OURS = ("/doseqslam/loop_closures", "/doseqslam/sequences")
+OURS = ("/doseqslam/loop_closures", "/doseqslam/sequences", "/doseqslam/candidates")
 FRAMES = 40
 STEP_NS = 100_000_000  # 10 frames a second
 PARAMETERS_HASH = "0123456789abcdef"
@@ -344,7 +355,7 @@ def ros2_output(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> 
     start = min(m[1] for m in read_mcap(source)["messages"])
     summary = write_annotated_mcap(source, output, make_annotations(start))
     assert summary.copied_messages == 194 and summary.profile == "ros2"
-    assert summary.written == {OURS[0]: 5, OURS[1]: 3}
+    assert summary.written == {OURS[0]: 5, OURS[1]: 3, OURS[2]: 0}
     assert sha256(source) == before  # the input is never modified
     return output
 
@@ -365,6 +376,7 @@ def test_ros2_mcap_our_channels_decode_with_mcap_ros2(shared_data: Path, ros2_ou
     assert {(k[0], k[1], k[3][0], k[3][1]) for k in ours} == {
         (OURS[0], "cdr", "doseqslam_msgs/msg/LoopClosure", "ros2msg"),
         (OURS[1], "cdr", "doseqslam_msgs/msg/Sequence", "ros2msg"),
+        (OURS[2], "cdr", "doseqslam_msgs/msg/LoopClosure", "ros2msg"),
     }
     start = min(m[1] for m in read_mcap(shared_data / ROS2_MCAP)["messages"])
     decoded = our_messages(ros2_output)
@@ -409,10 +421,10 @@ def test_annotating_again_replaces_our_channels(
     second = tmp_path / "second.mcap"
     # Shifted by one frame, so that the new content is told apart from the old.
     summary = write_annotated_mcap(ros2_output, second, make_annotations(start + STEP_NS, "2nd"))
-    assert summary.replaced_topics == list(OURS)
+    assert summary.replaced_topics == sorted(OURS)
     output = read_mcap(second)
     assert_copied(read_mcap(shared_data / ROS2_MCAP), output)
-    assert sorted(c.topic for c in output["channels"].values() if c.topic in OURS) == list(OURS)
+    assert sorted(c.topic for c in output["channels"].values() if c.topic in OURS) == sorted(OURS)
     names = [s.name for s in output["schemas"].values() if s.name.startswith("doseqslam_msgs")]
     assert sorted(names) == ["doseqslam_msgs/msg/LoopClosure", "doseqslam_msgs/msg/Sequence"]
     assert [m for m in output["metadata"] if m[0] == "doseqslam"] == [
@@ -430,10 +442,51 @@ def test_sidecar_holds_only_ours(shared_data: Path, tmp_path: Path, source_name:
     )
     assert summary.copied_messages == 0
     content = read_mcap(output)
-    assert sorted(c.topic for c in content["channels"].values()) == list(OURS)
+    assert sorted(c.topic for c in content["channels"].values()) == sorted(OURS)
     assert Counter(m[0] for m in content["messages"]) == {OURS[0]: 5, OURS[1]: 3}
     assert [m[0] for m in content["metadata"]] == ["doseqslam"]
     assert content["header"].profile == plan_copy(shared_data / source_name).profile
+
+
+def with_verdicts(annotations: Annotations, verdicts: dict[int, str]) -> Annotations:
+    """The annotations with each pair's verification: `verdicts` by query index, else
+    accepted."""
+    messages = [
+        TimedMessage(
+            replace(m.record, verification=verdicts.get(m.record.query.index, ACCEPTED)),
+            m.log_time_ns,
+        )
+        if isinstance(m.record, LoopClosureRecord)
+        else m
+        for m in annotations.messages
+    ]
+    return replace(annotations, messages=messages)
+
+
+@pytest.mark.parametrize("source_name", [ROS2_MCAP, ROS1_BAG, "json"])
+def test_pairs_not_reported_are_written_on_the_candidates_topic(
+    shared_data: Path, tmp_path: Path, source_name: str
+) -> None:
+    source = shared_data / source_name
+    if source_name == "json":
+        write_json_mcap(source := tmp_path / "log.mcap", "foxglove")
+    verdicts = {31: REJECTED, 33: SKIPPED}
+    output = tmp_path / "sidecar.mcap"
+    annotations = with_verdicts(make_annotations(0), verdicts)
+    summary = write_annotated_mcap(source, output, annotations, sidecar=True)
+    assert summary.written == {OURS[0]: 3, OURS[1]: 3, OURS[2]: 2}
+    content = read_mcap(output)
+    channels = {c.topic: c for c in content["channels"].values()}
+    assert channels[OURS[0]].schema_id == channels[OURS[2]].schema_id  # one LoopClosure schema
+    by_topic = {topic: [m[1] for m in content["messages"] if m[0] == topic] for topic in OURS}
+    assert by_topic[OURS[0]] == [30 * STEP_NS, 32 * STEP_NS, 34 * STEP_NS]
+    assert by_topic[OURS[2]] == [31 * STEP_NS, 33 * STEP_NS]
+    # Read back, the two topics are one list again, in query order, verdicts as written.
+    log = read_annotations(output)
+    assert [(lc.query.index, lc.verification) for lc in log.loop_closures] == [
+        (30, ACCEPTED), (31, REJECTED), (32, ACCEPTED), (33, SKIPPED), (34, ACCEPTED)
+    ]  # fmt: skip
+    assert [lc.query.index for lc in log.reported_loop_closures] == [30, 32, 34]
 
 
 # --- ROS 1 bag ----------------------------------------------------------------------------

@@ -26,7 +26,7 @@ from ..sources import refuse_stream
 from ..sources.mcap_source import DESERIALIZERS, describe_read_error, is_complete
 from .records import (
     FRAME_TIMES_ATTACHMENT,
-    LOOP_CLOSURE,
+    LOOP_CLOSURE_TOPICS,
     METADATA_NAME,
     SEQUENCE,
     FrameTimes,
@@ -35,12 +35,17 @@ from .records import (
     SequenceRecord,
 )
 
-TOPICS = (LOOP_CLOSURE.topic, SEQUENCE.topic)
+TOPICS = (*LOOP_CLOSURE_TOPICS, SEQUENCE.topic)
 
 
 @dataclass(frozen=True)
 class AnnotatedLog:
-    """Our messages in log-time order, and the run's metadata record."""
+    """Our messages in log-time order, and the run's metadata record.
+
+    `loop_closures` holds every LoopClosure message, reported or not, from both of their
+    topics (or, in outputs of versions that wrote them all there, from /doseqslam/loop_closures
+    alone): the same records whichever layout the file has.
+    """
 
     path: Path
     metadata: RunMetadata
@@ -54,9 +59,9 @@ class AnnotatedLog:
         """The loop closures the run reports: all but those geometric verification rejected
         or skipped.
 
-        Rejected and skipped pairs stay on the channel (verification == "rejected" or
-        "skipped") for evaluation and diffs; logs annotated without verification (or before it
-        existed) report every pair.
+        Rejected and skipped pairs (verification == "rejected" or "skipped", on
+        /doseqslam/candidates) stay in `loop_closures` for evaluation and diffs; logs annotated
+        without verification (or before it existed) report every pair.
         """
         return [lc for lc in self.loop_closures if lc.reported]
 
@@ -160,7 +165,7 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
     """
     file = Path(path)
     refuse_stream(file)
-    closures: list[dict[str, Any]] = []
+    closures: list[tuple[int, dict[str, Any]]] = []  # (log time, message): two topics to merge
     sequences: list[dict[str, Any]] = []
     try:
         with file.open("rb") as stream:
@@ -170,7 +175,10 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
                 if schema.id not in decoders:
                     decoders[schema.id] = _decoder(schema, channel.message_encoding)
                 decoded = plain(decoders[schema.id](message.data))
-                (closures if channel.topic == LOOP_CLOSURE.topic else sequences).append(decoded)
+                if channel.topic in LOOP_CLOSURE_TOPICS:
+                    closures.append((message.log_time, decoded))
+                else:
+                    sequences.append(decoded)
             entries, frame_times = _ours_of(stream, reader, attachments=True)
     except (OSError, McapError, ValueError, KeyError, struct.error) as exc:
         raise SourceError(f"{path}: cannot read the annotations ({_problem(file, exc)})") from exc
@@ -180,12 +188,23 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
         return AnnotatedLog(
             file,
             RunMetadata.from_entries(entries),
-            tuple(LoopClosureRecord.from_message(m, frame_times) for m in closures),
+            _loop_closures(closures, frame_times),
             tuple(SequenceRecord.from_message(m) for m in sequences),
             frame_times,
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise SourceError(f"{path}: unusable message on our channels ({exc!r})") from exc
+
+
+def _loop_closures(
+    messages: list[tuple[int, dict[str, Any]]], frame_times: FrameTimes | None
+) -> tuple[LoopClosureRecord, ...]:
+    """The LoopClosure messages of both topics as one list, in the order the writer wrote
+    them (`TimedMessage.sort_key`: log time, then query index), whatever order equal log times
+    were read in."""
+    records = [(t, LoopClosureRecord.from_message(m, frame_times)) for t, m in messages]
+    records.sort(key=lambda item: (item[0], item[1].query.index))
+    return tuple(record for _, record in records)
 
 
 def _our_messages(reader: Any) -> Iterator[tuple[Schema, Any, Any]]:

@@ -51,7 +51,16 @@ NOT_REPORTED = frozenset({REJECTED, SKIPPED})
 
 LOOP_CLOSURE = MessageType("LoopClosure", OUR_TOPIC_PREFIX + "loop_closures", 0)
 SEQUENCE = MessageType("Sequence", OUR_TOPIC_PREFIX + "sequences", 1)
-MESSAGE_TYPES: tuple[MessageType, ...] = (LOOP_CLOSURE, SEQUENCE)
+# The pairs the run decided on but does not report (NOT_REPORTED), as LoopClosure messages on
+# their own topic: a consumer of /doseqslam/loop_closures takes every message for a loop.
+# Ranked as the loop closures, so that the two topics together keep one order.
+CANDIDATE = MessageType("LoopClosure", OUR_TOPIC_PREFIX + "candidates", 0)
+# In the order the writer registers their channels (the candidates' after the sequences', so
+# that the first two keep their ids).
+MESSAGE_TYPES: tuple[MessageType, ...] = (LOOP_CLOSURE, SEQUENCE, CANDIDATE)
+# The topics that hold LoopClosure messages: outputs of versions that wrote every pair on
+# /doseqslam/loop_closures read back the same.
+LOOP_CLOSURE_TOPICS = (LOOP_CLOSURE.topic, CANDIDATE.topic)
 
 
 @dataclass(frozen=True)
@@ -225,13 +234,12 @@ DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY, NO_METRIC = "depth_pnp", "odometry_pnp",
 
 @dataclass(frozen=True)
 class LoopClosureRecord:
-    """One message of /doseqslam/loop_closures (schemas/*/LoopClosure: what each field means).
+    """One LoopClosure message (schemas/*/LoopClosure: what each field means): on
+    /doseqslam/loop_closures when the run reports it, else on /doseqslam/candidates.
 
     Fields that verification appended read as "not recorded" (`verification` ==
     NOT_RECORDED, the refined match equal to the match) from logs annotated before them.
     """
-
-    message_type: ClassVar[MessageType] = LOOP_CLOSURE
 
     query: FrameRef
     match: FrameRef
@@ -279,6 +287,11 @@ class LoopClosureRecord:
         """A loop closure of the run: not rejected nor skipped by verification (a log
         annotated without verification, or before it existed, reports every pair)."""
         return self.verification not in NOT_REPORTED
+
+    @property
+    def message_type(self) -> MessageType:
+        """Where the record is written: its topic follows `reported`."""
+        return LOOP_CLOSURE if self.reported else CANDIDATE
 
     @property
     def matched(self) -> FrameRef:

@@ -40,7 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "annotate",
         help="replay the detector over a log and write it back with loop closures",
         description="Replay the detector over the camera channel of LOG and write OUT.mcap: "
-        "every record of the input unchanged, plus /doseqslam/loop_closures, "
+        "every record of the input unchanged, plus /doseqslam/loop_closures (the reported loop "
+        "closures), /doseqslam/candidates (the pairs verification rejected or skipped), "
         "/doseqslam/sequences and a 'doseqslam' metadata record.",
     )
     parser.add_argument("log", type=Path, help="MCAP file, ROS 1 .bag, rosbag2 folder or .db3")

@@ -119,7 +119,7 @@ class LogSummary:
     parameters_hash: str
     source_file: str
     source_sha256: str
-    loop_closures: int  # all pairs on the channel, rejected ones included
+    loop_closures: int  # every pair decided on, rejected and skipped ones included
     reported: int
 
     def to_json_dict(self) -> dict[str, Any]:

@@ -262,7 +262,8 @@ def _json_document(
 
 
 def detections(plots: ModuleType, log: AnnotatedLog, gt: GroundTruth, tolerance: int) -> list[Any]:
-    """Every pair on /doseqslam/loop_closures, true or false (rejected ones marked so)."""
+    """Every pair decided on, true or false (rejected and skipped ones, on
+    /doseqslam/candidates, marked so)."""
     pairs = [(lc.query.index, lc.matched.index) for lc in log.loop_closures]
     truth = gt.are_true([q for q, _ in pairs], [m for _, m in pairs], tolerance)
     found = []

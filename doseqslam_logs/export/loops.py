@@ -97,12 +97,13 @@ def frame_times_ns(log: AnnotatedLog) -> npt.NDArray[np.int64]:
 
 
 def selected_loop_closures(log: AnnotatedLog, include_rejected: bool) -> list[LoopClosureRecord]:
-    """The reported loop closures, or every pair on the channel with `include_rejected`."""
+    """The reported loop closures, or with `include_rejected` every pair decided on (those on
+    /doseqslam/candidates too)."""
     return list(log.loop_closures if include_rejected else log.reported_loop_closures)
 
 
 def verification_count(log: AnnotatedLog, verdict: str) -> int:
-    """Loop closures on the channel whose `verification` is `verdict`."""
+    """Pairs decided on (reported or not) whose `verification` is `verdict`."""
     return sum(1 for lc in log.loop_closures if lc.verification == verdict)
 
 

@@ -213,16 +213,24 @@ class _Annotator:
         # ids keep their numbering in outputs where the input's records come first.
         if self.channel_ids:
             return
+        schema_ids: dict[str, int] = {}  # one schema per definition, shared by its topics
         for message_type in MESSAGE_TYPES:
-            self.channel_ids[message_type.topic] = self._register(message_type)
+            if message_type.name not in schema_ids:
+                schema_ids[message_type.name] = self._register_schema(message_type)
+            schema_id = schema_ids[message_type.name]
+            self.channel_ids[message_type.topic] = self._register_channel(message_type, schema_id)
 
-    def _register(self, message_type: MessageType) -> int:
+    def _register_schema(self, message_type: MessageType) -> int:
         encoder = self.encoder
-        schema_id = self.writer.register_schema(
+        schema_id: int = self.writer.register_schema(
             encoder.schema_name(message_type),
             encoder.schema_encoding,
             encoder.schema_data(message_type),
         )
+        return schema_id
+
+    def _register_channel(self, message_type: MessageType, schema_id: int) -> int:
+        encoder = self.encoder
         return self.writer.register_channel(
             message_type.topic,
             encoder.message_encoding,
