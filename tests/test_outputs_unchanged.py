@@ -41,8 +41,8 @@ REPO = Path(__file__).resolve().parents[1]
 # topic recorded in the metadata (a new key, odometry_topic: /odom for every sample); then
 # the candidates topic (only the reported pairs on /doseqslam/loop_closures, the others on
 # /doseqslam/candidates, and the LoopClosure schema's comment naming both: the decisions
-# identical).
-BYTES_REFERENCE = "e5d0bb4"
+# identical); the two merged in fdac491.
+BYTES_REFERENCE = "fdac491"
 REFERENCE = BYTES_REFERENCE
 
 
