@@ -3,8 +3,8 @@ CameraInfo and an aligned depth topic (so that the metric stage takes depth PnP 
 visualization draws the trajectory) is damaged two ways and goes through `annotate` with its
 defaults (verification, motion rule, metric poses, visualization) and then `optimize`:
 
-- message by message: a fifth of the depth, odometry and CameraInfo messages damaged (seeded:
-  flipped bytes, cut short, grown, emptied);
+- message by message: a fifth of the depth, odometry and CameraInfo messages, or of the camera
+  images, damaged (seeded: flipped bytes, cut short, grown, emptied);
 - container bytes mutated by hypothesis (test_fuzz's mutations: bit flips, cuts, inserted and
   duplicated ranges, huge length fields), in a ROS 2 MCAP (also with --recover) and a ROS 1
   bag.
@@ -35,6 +35,7 @@ from loggen import make_sample_logs as gen
 pytestmark = pytest.mark.slow
 
 DEPTH, ODOM, CAMERA_INFO = "/camera/depth/image", "/odom", "/camera/camera_info"
+CAMERA = "/camera/image/compressed"
 # 90 frames at 1 Hz, about two laps: 9 loop closures, each with a depth PnP pose (4 s a run).
 DRIVE = gen.Config(
     name="drive", seed=11, route="loops", duration=90.0, rate=1.0, width=160, height=120,
@@ -91,6 +92,28 @@ def test_damaged_depth_odometry_and_camera_info_end_as_documented(
     if code == 0:
         annotated = read_annotations(tmp_path / "out" / "annotated.mcap")
         assert annotated.metadata.frames_used == 90
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_damaged_camera_images_are_skipped_counted_and_the_rest_takes_every_stage(
+    drive: dict[str, Path], tmp_path: Path, seed: int
+) -> None:
+    rng = random.Random(seed)
+    damaged: list[int] = []
+
+    def change(topic: str, index: int, data: bytes, decode: Callable[[bytes], object]) -> bytes:
+        if topic != CAMERA or rng.random() >= 0.2:
+            return data
+        damaged.append(index)
+        return damage(data, rng)
+
+    log = rewrite_messages(drive["mcap"], tmp_path / "damaged.mcap", change)
+    code, err = annotate_and_optimize(log, tmp_path / "out")
+    assert code == 0, err  # a fifth of the frames lost is no reason to stop
+    metadata = read_annotations(tmp_path / "out" / "annotated.mcap").metadata
+    # A damaged JPEG may still decode (a flipped bit in its scan data): at most those are used.
+    assert 90 - len(damaged) <= metadata.frames_used < 90 and damaged
+    assert metadata.frames_used + metadata.frames_skipped == 90
 
 
 @pytest.mark.parametrize(("name", "examples"), [("mcap", 12), ("bag", 8)])
