@@ -20,7 +20,10 @@ from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import SourceError
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.sinks import visualization
+from doseqslam_logs.sinks.mcap_writer import _Annotator
 from doseqslam_logs.sources.mcap_source import McapSource
+from doseqslam_logs.sources.rosbags_source import RosbagsSource
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 ROS2 = SAMPLES / "drive_loops.ros2.mcap"
@@ -129,24 +132,62 @@ def test_no_visualization_writes_none_of_them(tmp_path: Path) -> None:
     assert {"/doseqslam/loop_closures", "/doseqslam/sequences"} <= topics
 
 
-def test_match_images_are_read_one_at_a_time(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Bounded memory: one ranged read of one nanosecond per loop closure, never the topic."""
-    reads: list[tuple[int | None, int | None, int]] = []
-    original = McapSource.raw_messages
+def _count_ranged_reads(
+    monkeypatch: pytest.MonkeyPatch, source: type[Any]
+) -> list[tuple[Any, ...]]:
+    """Every `raw_messages` call of `source` (topic, start, end, messages read)."""
+    reads: list[tuple[Any, ...]] = []
+    original = source.raw_messages
 
-    def spy(self: McapSource, topic: str, start: int | None = None, end: int | None = None):  # type: ignore[no-untyped-def]
+    def spy(self: Any, topic: str, start: int | None = None, end: int | None = None):  # type: ignore[no-untyped-def]
         got = list(original(self, topic, start, end))
-        reads.append((start, end, len(got)))
+        reads.append((topic, start, end, len(got)))
         yield from got
 
-    monkeypatch.setattr(McapSource, "raw_messages", spy)
+    monkeypatch.setattr(source, "raw_messages", spy)
+    return reads
+
+
+@pytest.mark.parametrize(
+    ("name", "source"), [("drive_loops.ros2.mcap", McapSource), ("drive_loops.bag", RosbagsSource)]
+)
+def test_match_images_come_from_the_copy_with_no_ranged_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str, source: type[Any]
+) -> None:
+    """The copy streams every match before its query: kept from it, never read again."""
+    reads = _count_ranged_reads(monkeypatch, source)
+    output = tmp_path / "out.mcap"
+    annotate_log(SAMPLES / name, output, Parameters(), NO_VERIFY)
+    assert channels(output)[MATCH][1] > 0
+    assert reads == []
+
+
+def test_over_the_budget_each_match_is_read_again_into_the_same_bytes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Bounded memory: with no room for a kept image, one ranged read of one nanosecond per
+    loop closure, never the topic, and the output is the same file."""
+    kept = tmp_path / "kept.mcap"
+    annotate_log(ROS2, kept, Parameters(), NO_VERIFY)
+    monkeypatch.setattr(visualization, "KEPT_MATCHES_BYTES", 1)
+    reads = _count_ranged_reads(monkeypatch, McapSource)
+    read_again = tmp_path / "read_again.mcap"
+    annotate_log(ROS2, read_again, Parameters(), NO_VERIFY)
+    loops = channels(read_again)[MATCH][1]
+    assert len(reads) == loops > 0
+    assert all(s is not None and e == s + 1 and n == 1 for _, s, e, n in reads)
+    assert read_again.read_bytes() == kept.read_bytes()
+
+
+def test_a_copier_that_passes_no_camera_message_reads_each_match_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A log format whose copier does not call `message_copied` still gets its match images."""
+    monkeypatch.setattr(_Annotator, "message_copied", lambda *args: None)
+    reads = _count_ranged_reads(monkeypatch, McapSource)
     output = tmp_path / "out.mcap"
     annotate_log(ROS2, output, Parameters(), NO_VERIFY)
-    loops = channels(output)[MATCH][1]
-    assert len(reads) == loops > 0
-    assert all(s is not None and e == s + 1 and n == 1 for s, e, n in reads)
+    assert len(reads) == channels(output)[MATCH][1] > 0
 
 
 def _copy_without(source: Path, target: Path, dropped: set[str]) -> None:
@@ -278,6 +319,7 @@ def test_a_match_image_not_found_again_fails_with_no_output(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The log changed under the run: SourceError (exit 3), and no output appears."""
+    monkeypatch.setattr(visualization, "KEPT_MATCHES_BYTES", 0)  # each match read again
     monkeypatch.setattr(McapSource, "raw_messages", lambda *args: iter(()))
     output = tmp_path / "out.mcap"
     with pytest.raises(SourceError, match="is not found again"):

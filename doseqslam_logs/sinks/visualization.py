@@ -12,15 +12,18 @@ loop closure, written once, at the log's first message: a viewer seeking anywher
 latest message of each topic, so the run's picture and the current loop closure show wherever
 one scrubs (a scene built up message by message would show only its last line after a seek).
 
-Memory is bounded by the loop closures and the poses, never by the images: the match image is
-read again from the input (a second reader, one ranged read per loop closure) when the writer,
-copying the input in log-time order, reaches the query's time. The match is older than the
-query, so the writer has already registered the camera channel whose schema it reuses.
+The match is older than the query, so the copy has already written both the camera channel
+whose schema the match images reuse and the match's own message: the writer keeps the camera
+messages at the plan's match times as they are copied, each until the last loop closure that
+shows it is written. Memory stays bounded: the kept images have a byte budget
+(KEPT_MATCHES_BYTES), and a match not kept (over the budget, not seen, or ambiguous) is read
+again from the input, one ranged read, when its query's time comes.
 """
 
 from __future__ import annotations
 
 import contextlib
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -53,6 +56,8 @@ CURRENT_LOOP_COLOR = (1.0, 0.3, 0.1, 1.0)
 BADGE_PX = 20.0  # the square drawn on the query image (Foxglove 1.48 draws no texts)
 TEXT_COLOR = (1.0, 1.0, 1.0, 1.0)
 TEXT_BACKGROUND = (0.0, 0.0, 0.0, 0.6)
+# The match images kept from the copy at most (bytes); beyond it a match is read again.
+KEPT_MATCHES_BYTES = 64 * 1024 * 1024
 
 
 def match_topic(camera_topic: str) -> str:
@@ -158,6 +163,7 @@ class VisualWriter:
         self.channel_ids: dict[str, int] = {}
         self.written: dict[str, int] = {}
         self._source: Source | None = None
+        self._kept = _KeptMatches(plan.loops, KEPT_MATCHES_BYTES)
 
     def input_channel(
         self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
@@ -165,6 +171,11 @@ class VisualWriter:
         """Called for each input channel copied: the camera's schema is the match images'."""
         if topic == self.plan.camera_topic and self.camera is None:
             self.camera = (schema_id, encoding, dict(metadata))
+
+    def input_message(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Called after each input message copied: a camera message at a match time is kept."""
+        if topic == self.plan.camera_topic:
+            self._kept.offer(log_time_ns, data)
 
     def write_until(self, log_time_ns: int | None) -> None:
         """Writes what is due at log times <= log_time_ns (everything for None)."""
@@ -215,9 +226,10 @@ class VisualWriter:
             self._add(MATCH_MARKER_TOPIC, self.encoder.scene_schema, time, data)
 
     def _write_match_image(self, loop: VisualLoop) -> None:
+        kept = self._kept.take(loop.match_log_time_ns)
         if self.camera is None:
             return  # the camera channel was not copied (a sidecar): no schema to reuse
-        data = self._read_match(loop)
+        data = self._read_match(loop) if kept is None else kept
         topic = match_topic(self.plan.camera_topic)
         if topic not in self.channel_ids:
             schema_id, encoding, metadata = self.camera
@@ -254,3 +266,44 @@ class VisualWriter:
         channel_id = self.channel_ids[topic]
         self.writer.add_message(channel_id, log_time_ns, data, log_time_ns, sequence & 0xFFFFFFFF)
         self.written[topic] = sequence + 1
+
+
+class _KeptMatches:
+    """The camera messages at the loops' match times, kept from the copy until the last loop
+    closure that shows each is written, within a byte budget."""
+
+    def __init__(self, loops: Sequence[VisualLoop], budget_bytes: int) -> None:
+        self.budget_bytes = budget_bytes
+        self.uses = Counter(loop.match_log_time_ns for loop in loops)  # loops still to write
+        self.images: dict[int, bytes] = {}
+        self.seen: set[int] = set()  # match times whose first camera message has gone by
+        self.kept_bytes = 0
+
+    def offer(self, log_time_ns: int, data: bytes) -> None:
+        """A copied camera message: kept when it is the first at a match time still needed."""
+        if self.uses[log_time_ns] <= 0:
+            return
+        if log_time_ns in self.seen:
+            # Two images at one log time: the ranged read settles which one is the match.
+            self._drop(log_time_ns)
+            return
+        self.seen.add(log_time_ns)
+        if self.kept_bytes + len(data) <= self.budget_bytes:
+            self.images[log_time_ns] = data
+            self.kept_bytes += len(data)
+
+    def take(self, log_time_ns: int) -> bytes | None:
+        """The kept image of one loop closure's match (None: read it again), dropped once no
+        loop closure still to write shows it."""
+        data = self.images.get(log_time_ns)
+        self.uses[log_time_ns] -= 1
+        if self.uses[log_time_ns] <= 0:
+            del self.uses[log_time_ns]
+            self.seen.discard(log_time_ns)
+            self._drop(log_time_ns)
+        return data
+
+    def _drop(self, log_time_ns: int) -> None:
+        data = self.images.pop(log_time_ns, None)
+        if data is not None:
+            self.kept_bytes -= len(data)
