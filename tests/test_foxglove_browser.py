@@ -16,7 +16,10 @@ import os
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 
 from doseqslam_logs.cli.main import main
@@ -43,11 +46,15 @@ OUR_TOPICS = (
     "/doseqslam/match/annotations",
     "/doseqslam/markers",
     "/doseqslam/match/marker",
+    "/doseqslam/loop_lines",
 )
 LAYOUT = REPO / "docs" / "foxglove_layout.json"
 # Where the layout screenshot is taken: 108 s of the 119.5 s drive, query frame 216 of a run
 # of loop closures (its match, frame 88, is the one shown).
 LOOP_CLOSURE_AT = 0.9
+# 72 s: between the loop closures of 68 s and 75 s, where the match panel once went on
+# showing the 68 s match.
+BETWEEN_LOOPS_AT = 0.6025
 
 
 def _missing() -> str:
@@ -93,18 +100,38 @@ def test_every_output_profile_opens_in_foxglove_with_no_problem(tmp_path: Path) 
             assert (shots / f"{Path(result['log']).name}.{tab}.png").stat().st_size > 0
 
 
+def match_panel_pixels(seek: dict[str, Any]) -> np.ndarray[Any, Any]:
+    """The screenshot's pixels of the match Image panel: the top row's right canvas."""
+    top = min(canvas["y"] for canvas in seek["canvases"])
+    panel = max((c for c in seek["canvases"] if c["y"] == top), key=lambda c: c["x"])
+    x, y, width, height = (round(panel[k]) for k in ("x", "y", "width", "height"))
+    screenshot = cv2.imread(seek["screenshot"])
+    assert screenshot is not None, seek
+    return np.asarray(screenshot[y : y + height, x : x + width])
+
+
+def shows_no_loop(panel: np.ndarray[Any, Any]) -> bool:
+    """The grey "no loop" frame: its upper part one grey, its middle the white label."""
+    height, width = panel.shape[:2]
+    upper = panel[height // 10 : height * 3 // 10, width // 10 : width * 9 // 10]
+    middle = panel[height * 4 // 10 : height * 6 // 10, width // 4 : width * 3 // 4]
+    grey = abs(float(upper.mean()) - 128) < 4 and float(upper.std()) < 3
+    return grey and bool((middle > 200).all(axis=2).any())
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(bool(_missing()), reason=_missing() or "ready")
 def test_the_layout_shows_query_match_and_loop_lines_with_no_problem(tmp_path: Path) -> None:
-    """docs/foxglove_layout.json over the ROS 2 output of the `annotate` defaults: the run
-    drives the viewer; the screenshot (docs/images/foxglove_loop_closure.png) is looked at."""
+    """docs/foxglove_layout.json over the ROS 2 output of the `annotate` defaults, seeked to a
+    loop closure and then between two: the run drives the viewer; the screenshot at the loop
+    closure (docs/images/foxglove_loop_closure.png) is looked at."""
     output = tmp_path / "ros2.layout.mcap"
     assert main(["annotate", str(REPO / "sample_logs" / PROFILES["ros2"]), "-o", str(output)]) == 0
     shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
     shots.mkdir(parents=True, exist_ok=True)
     run = subprocess.run(
         ["node", str(DRIVER), str(MODULES), CHROMIUM, str(shots), "--layout", str(LAYOUT),
-         str(LOOP_CLOSURE_AT), str(output)],
+         f"{LOOP_CLOSURE_AT},{BETWEEN_LOOPS_AT}", str(output)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
@@ -119,3 +146,8 @@ def test_the_layout_shows_query_match_and_loop_lines_with_no_problem(tmp_path: P
     assert not [line for line in result["message"] if line.startswith("Waiting for")], result
     assert "216" in result["message"], result
     assert (shots / f"{output.name}.layout.png").stat().st_size > 0
+    # What a user sees in the match panel: the match at the loop closure, and between loop
+    # closures the grey "no loop" frame, not the last match.
+    at_loop, between = result["seeks"]
+    assert not shows_no_loop(match_panel_pixels(at_loop)), at_loop
+    assert shows_no_loop(match_panel_pixels(between)), between
