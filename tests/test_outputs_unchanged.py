@@ -37,8 +37,10 @@ REPO = Path(__file__).resolve().parents[1]
 # their metadata lists it and their hash moves); then #35's one feature extraction a frame
 # (shared_features: a new verification parameter, and the segmentation takes the features ORB
 # would keep from the verification's, in their order, so drive_loops has 32 sequences instead
-# of 33, on purpose; the samples' verified pairs are the same counts).
-BYTES_REFERENCE = "303825c"
+# of 33, on purpose; the samples' verified pairs are the same counts); then the visualization
+# channels' "no loop" between loop closures and loop lines as they happen (new messages and
+# the /doseqslam/loop_lines topic, on purpose; the loop closures and sequences the same).
+BYTES_REFERENCE = "2644ade"
 REFERENCE = BYTES_REFERENCE
 
 

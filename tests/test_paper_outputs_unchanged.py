@@ -16,8 +16,10 @@ from reproduce import compare_versions
 REPO = Path(__file__).resolve().parents[1]
 
 
-# --no-verify's bytes: untouched by every verification change since.
-PAPER_BYTES_REFERENCE = "b49b5b3"
+# --no-verify's bytes: untouched by every verification change since; moved by the
+# visualization channels' "no loop" between loop closures and loop lines as they happen (on
+# purpose; the loop closures and sequences the same).
+PAPER_BYTES_REFERENCE = "2644ade"
 # The paper's detector (--no-verify) decides the same loop closures and sequences as before
 # the package layout of issue #18: the records compared, not the bytes around them.
 PAPER_REFERENCE = "4c02724"
