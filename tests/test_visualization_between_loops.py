@@ -225,3 +225,13 @@ def test_an_image_field_followed_by_others_is_replaced_and_they_kept(
     else:
         back = store.deserialize_ros1(replaced, typename)
     assert (bytes(back.data), back.format, back.frame_id) == (new, "png", "cam")
+
+
+def test_a_json_image_message_gets_the_new_data_in_base64_and_keeps_its_other_fields() -> None:
+    sample = b'{"timestamp":{"sec":1,"nsec":2},"frame_id":"cam","data":"AQID","format":"jpeg"}'
+    replaced = no_loop_frame._with_data(sample, b"\x01\x02\x03", b"\x04\x05", "json")
+    assert (
+        replaced
+        == b'{"timestamp":{"sec":1,"nsec":2},"frame_id":"cam","data":"BAU=","format":"jpeg"}'
+    )
+    assert no_loop_frame._with_data(sample, b"other", b"\x04", "json") is None  # not its image
