@@ -19,6 +19,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 
 from doseqslam_logs.cli.main import main
@@ -45,11 +47,15 @@ OUR_TOPICS = (
     "/doseqslam/match/annotations",
     "/doseqslam/markers",
     "/doseqslam/match/marker",
+    "/doseqslam/loop_lines",
 )
 LAYOUT = REPO / "docs" / "foxglove_layout.json"
 # Where the layout screenshot is taken: 108 s of the 119.5 s drive, query frame 216 of a run
 # of loop closures (its match, frame 88, is the one shown).
 LOOP_CLOSURE_AT = 0.9
+# 72 s: between the loop closures of 68 s and 75 s, where the match panel once went on
+# showing the 68 s match.
+BETWEEN_LOOPS_AT = 0.6025
 
 
 def _missing() -> str:
@@ -102,22 +108,39 @@ ODOMETRY_BGR = (0, 176, 255)
 PATHS = ("/doseqslam/optimized_path", "/doseqslam/odometry_path")
 
 
-def _pixels_of(png: Path, bgr: tuple[int, int, int], tolerance: int = 40) -> int:
+def pixels_of(screenshot: str | Path, bgr: tuple[int, int, int], tolerance: int = 40) -> int:
     """How many pixels of the screenshot have the colour `bgr`, give or take `tolerance` per
     channel (antialiased edges blend with the background)."""
-    import cv2
-    import numpy as np
-
-    image = cv2.imread(str(png), cv2.IMREAD_COLOR)
-    assert image is not None, png
+    image = cv2.imread(str(screenshot), cv2.IMREAD_COLOR)
+    assert image is not None, screenshot
     near = np.abs(image.astype(np.int16) - np.array(bgr, np.int16)) <= tolerance
     return int(np.count_nonzero(near.all(axis=2)))
 
 
-def _open_in_layout(log: Path, shots: Path) -> dict[str, Any]:
+def match_panel_pixels(seek: dict[str, Any]) -> np.ndarray[Any, Any]:
+    """The screenshot's pixels of the match Image panel: the top row's right canvas."""
+    top = min(canvas["y"] for canvas in seek["canvases"])
+    panel = max((c for c in seek["canvases"] if c["y"] == top), key=lambda c: c["x"])
+    x, y, width, height = (round(panel[k]) for k in ("x", "y", "width", "height"))
+    screenshot = cv2.imread(seek["screenshot"])
+    assert screenshot is not None, seek
+    return np.asarray(screenshot[y : y + height, x : x + width])
+
+
+def shows_no_loop(panel: np.ndarray[Any, Any]) -> bool:
+    """The grey "no loop" frame: its upper part one grey, its middle the white label."""
+    height, width = panel.shape[:2]
+    upper = panel[height // 10 : height * 3 // 10, width // 10 : width * 9 // 10]
+    middle = panel[height * 4 // 10 : height * 6 // 10, width // 4 : width * 3 // 4]
+    grey = abs(float(upper.mean()) - 128) < 4 and float(upper.std()) < 3
+    return grey and bool((middle > 200).all(axis=2).any())
+
+
+def open_in_layout(log: Path, shots: Path, seeks: str) -> dict[str, Any]:
+    """The log in docs/foxglove_layout.json, seeked to each fraction of `seeks` in turn."""
     run = subprocess.run(
         ["node", str(DRIVER), str(MODULES), CHROMIUM, str(shots), "--layout", str(LAYOUT),
-         str(LOOP_CLOSURE_AT), str(log)],
+         seeks, str(log)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
@@ -131,8 +154,9 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     tmp_path: Path,
 ) -> None:
     """docs/foxglove_layout.json over `optimize` of the ROS 2 output of the `annotate`
-    defaults: the run drives the viewer; the screenshot (docs/images/foxglove_loop_closure.png)
-    is looked at. The annotated log alone, without the paths, has neither path colour."""
+    defaults, seeked to a loop closure and then between two: the run drives the viewer; the
+    screenshot at the loop closure (docs/images/foxglove_loop_closure.png) is looked at. The
+    annotated log alone, without the paths, has neither path colour."""
     pytest.importorskip("gtsam")
     annotated, output = tmp_path / "ros2.annotated.mcap", tmp_path / "ros2.layout.mcap"
     sample = REPO / "sample_logs" / PROFILES["ros2"]
@@ -140,7 +164,7 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     assert main(["optimize", str(annotated), "-o", str(output)]) == 0
     shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
     shots.mkdir(parents=True, exist_ok=True)
-    result = _open_in_layout(output, shots)
+    result = open_in_layout(output, shots, f"{LOOP_CLOSURE_AT},{BETWEEN_LOOPS_AT}")
     # With verification the pairs it did not accept are on a topic of their own.
     assert {*OUR_TOPICS, *PATHS, "/doseqslam/candidates"} <= set(result["topics"]), result
     assert "No problems found" in result["problems"], result
@@ -151,14 +175,19 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     # of query frame 216 is in the Raw Messages panel.
     assert not [line for line in result["message"] if line.startswith("Waiting for")], result
     assert "216" in result["message"], result
+    at_loop, between = result["seeks"]
+    # What a user sees in the match panel: the match at the loop closure, and between loop
+    # closures the grey "no loop" frame, not the last match.
+    assert not shows_no_loop(match_panel_pixels(at_loop)), at_loop
+    assert shows_no_loop(match_panel_pixels(between)), between
     # The 3-D panel draws both paths, each in its colour: a line of the trajectory's length
     # (the drive spans about 20 m: each line covers thousands of pixels, the odometry, wider,
     # shows on both sides of the optimized one).
-    shot = shots / f"{output.name}.layout.png"
-    assert _pixels_of(shot, OPTIMIZED_BGR) > 1000
-    assert _pixels_of(shot, ODOMETRY_BGR) > 1000
+    assert pixels_of(at_loop["screenshot"], OPTIMIZED_BGR) > 1000
+    assert pixels_of(at_loop["screenshot"], ODOMETRY_BGR) > 1000
     # The same layout over the annotated log, which has no paths: neither colour.
-    without = _open_in_layout(annotated, shots)
+    without = open_in_layout(annotated, shots, str(LOOP_CLOSURE_AT))
     assert "No problems found" in without["problems"], without
-    plain = shots / f"{annotated.name}.layout.png"
-    assert _pixels_of(plain, OPTIMIZED_BGR) < 50 and _pixels_of(plain, ODOMETRY_BGR) < 50
+    [plain] = without["seeks"]
+    assert pixels_of(plain["screenshot"], OPTIMIZED_BGR) < 50
+    assert pixels_of(plain["screenshot"], ODOMETRY_BGR) < 50

@@ -41,8 +41,10 @@ REPO = Path(__file__).resolve().parents[1]
 # topic recorded in the metadata (a new key, odometry_topic: /odom for every sample); then
 # the candidates topic (only the reported pairs on /doseqslam/loop_closures, the others on
 # /doseqslam/candidates, and the LoopClosure schema's comment naming both: the decisions
-# identical); the two merged in fdac491.
-BYTES_REFERENCE = "fdac491"
+# identical); then the visualization channels' "no loop" between loop closures and loop lines
+# as they happen (new messages and the /doseqslam/loop_lines topic, on purpose; the loop
+# closures and sequences the same); the three merged in MERGE.
+BYTES_REFERENCE = "MERGE"
 REFERENCE = BYTES_REFERENCE
 
 

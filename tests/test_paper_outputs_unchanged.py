@@ -19,9 +19,10 @@ REPO = Path(__file__).resolve().parents[1]
 # --no-verify's bytes: untouched by every verification change since; moved by the run's
 # odometry topic recorded in the metadata (a new key, odometry_topic), on purpose; then the
 # candidates topic (an empty /doseqslam/candidates channel beside the loop closures', and the
-# LoopClosure schema's comment naming both: the decisions identical); the two merged in
-# fdac491.
-PAPER_BYTES_REFERENCE = "fdac491"
+# LoopClosure schema's comment naming both: the decisions identical); then the visualization
+# channels' "no loop" between loop closures and loop lines as they happen (on purpose; the
+# loop closures and sequences the same); the three merged in MERGE.
+PAPER_BYTES_REFERENCE = "MERGE"
 # The paper's detector (--no-verify) decides the same loop closures and sequences as before
 # the package layout of issue #18: the records compared, not the bytes around them.
 PAPER_REFERENCE = "4c02724"

@@ -20,7 +20,10 @@ from doseqslam_logs.cli.main import main
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.errors import SourceError
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
+from doseqslam_logs.sinks import visualization
+from doseqslam_logs.sinks.mcap_writer import _Annotator
 from doseqslam_logs.sources.mcap_source import McapSource
+from doseqslam_logs.sources.rosbags_source import RosbagsSource
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 ROS2 = SAMPLES / "drive_loops.ros2.mcap"
@@ -30,6 +33,10 @@ MATCH = "/doseqslam/match/image/compressed"
 TEXTS = "/doseqslam/match/annotations"
 MARKERS = "/doseqslam/markers"
 CURRENT = "/doseqslam/match/marker"
+LOOP_LINES = "/doseqslam/loop_lines"
+# The first camera frames that are no query, at the start and after each run of loop closures
+# (the "no loop" messages, tests/test_visualization_between_loops.py).
+NO_LOOPS = 12
 NO_VERIFY = AnnotateOptions(verification=None)
 
 
@@ -56,17 +63,21 @@ def ros2_output(annotated_sample: Callable[..., Path]) -> Path:
     return annotated_sample(ROS2.name)  # the `annotate` defaults: verification on
 
 
+def reported_loops(path: Path) -> int:
+    return sum(r.reported for r in read_annotations(path).loop_closures)
+
+
 def test_ros2_channels_have_the_viewers_schemas_and_one_message_per_loop(
     ros2_output: Path,
 ) -> None:
     found = channels(ros2_output)
-    reported = [r for r in read_annotations(ros2_output).loop_closures if r.reported]
-    assert len(reported) == LOOPS
-    assert found[MATCH] == ("sensor_msgs/msg/CompressedImage", LOOPS)
-    assert found[TEXTS] == ("foxglove_msgs/msg/ImageAnnotations", LOOPS)
-    # The trajectory and every loop line once; the current loop closure at each query.
+    assert reported_loops(ros2_output) == LOOPS
+    assert found[MATCH] == ("sensor_msgs/msg/CompressedImage", LOOPS + NO_LOOPS)
+    assert found[TEXTS] == ("foxglove_msgs/msg/ImageAnnotations", LOOPS + NO_LOOPS)
+    # The trajectory once; the current loop closure at each query, and the loop lines so far.
     assert found[MARKERS] == ("visualization_msgs/msg/MarkerArray", 1)
-    assert found[CURRENT] == ("visualization_msgs/msg/MarkerArray", LOOPS)
+    assert found[CURRENT] == ("visualization_msgs/msg/MarkerArray", LOOPS + NO_LOOPS)
+    assert found[LOOP_LINES] == ("visualization_msgs/msg/MarkerArray", LOOPS)
 
 
 def test_match_images_are_the_input_bytes_of_the_match_at_the_query_time(
@@ -75,7 +86,7 @@ def test_match_images_are_the_input_bytes_of_the_match_at_the_query_time(
     records = read_annotations(ros2_output).loop_closures
     by_query = {r.query.log_time_ns: r for r in records if r.reported}
     camera = dict(messages(ROS2, "/camera/image/compressed"))
-    republished = list(messages(ros2_output, MATCH))
+    republished = [(t, data) for t, data in messages(ros2_output, MATCH) if t in by_query]
     assert [t for t, _ in republished] == sorted(by_query)
     for log_time, data in republished:
         assert data == camera[by_query[log_time].matched.log_time_ns]
@@ -85,16 +96,17 @@ def test_markers_decode_as_a_trajectory_and_loop_lines(ros2_output: Path) -> Non
     store = get_typestore(Stores.ROS2_HUMBLE)
     typename = "visualization_msgs/msg/MarkerArray"
     [(first_time, scene)] = list(messages(ros2_output, MARKERS))
-    trajectory, loops = store.deserialize_cdr(scene, typename).markers
+    [trajectory] = store.deserialize_cdr(scene, typename).markers
+    *_, (_, so_far) = messages(ros2_output, LOOP_LINES)
+    [loops] = store.deserialize_cdr(so_far, typename).markers
     assert first_time == next(messages(ROS2, "/camera/camera_info"))[0]  # the log's first
     assert (trajectory.type, len(trajectory.points)) == (4, 240)  # LINE_STRIP, every pose
     assert trajectory.header.frame_id == loops.header.frame_id == "odom"  # /odom's frame
     assert (loops.type, len(loops.points)) == (5, 2 * LOOPS)  # LINE_LIST: a line per loop
-    current = [
-        store.deserialize_cdr(d, typename).markers for _, d in messages(ros2_output, CURRENT)
-    ]
-    assert {(m.type, m.id, len(m.points)) for [m] in current} == {(5, 0, 2)}  # replaced each time
-    assert len({(m.points[0].x, m.points[0].y) for [m] in current}) > 1  # it moves
+    scenes = [store.deserialize_cdr(d, typename).markers for _, d in messages(ros2_output, CURRENT)]
+    current = [m for [m] in scenes if m.action == 0]  # ADD; DELETE between loop closures
+    assert {(m.type, m.id, len(m.points)) for m in current} == {(5, 0, 2)}  # replaced each time
+    assert len({(m.points[0].x, m.points[0].y) for m in current}) > 1  # it moves
 
 
 def test_the_text_names_the_match_its_time_and_the_verification(ros2_output: Path) -> None:
@@ -106,8 +118,11 @@ def test_the_text_names_the_match_its_time_and_the_verification(ros2_output: Pat
     for file in schemas.glob("*.msg"):
         types.update(get_types_from_msg(file.read_text(), f"foxglove_msgs/msg/{file.stem}"))
     store.register(types)
-    _, data = next(messages(ros2_output, TEXTS))
-    annotations = store.deserialize_cdr(data, "foxglove_msgs/msg/ImageAnnotations")
+    decoded = (
+        store.deserialize_cdr(data, "foxglove_msgs/msg/ImageAnnotations")
+        for _, data in messages(ros2_output, TEXTS)
+    )
+    annotations = next(a for a in decoded if a.texts)  # the empty ones say "no loop"
     text = annotations.texts[0].text
     badge = annotations.points[0]  # what Foxglove 1.48 draws: it draws no texts
     assert (badge.type, len(badge.points), badge.fill_color.g) == (2, 4, 0.8)
@@ -129,24 +144,62 @@ def test_no_visualization_writes_none_of_them(tmp_path: Path) -> None:
     assert {"/doseqslam/loop_closures", "/doseqslam/sequences"} <= topics
 
 
-def test_match_images_are_read_one_at_a_time(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Bounded memory: one ranged read of one nanosecond per loop closure, never the topic."""
-    reads: list[tuple[int | None, int | None, int]] = []
-    original = McapSource.raw_messages
+def _count_ranged_reads(
+    monkeypatch: pytest.MonkeyPatch, source: type[Any]
+) -> list[tuple[Any, ...]]:
+    """Every `raw_messages` call of `source` (topic, start, end, messages read)."""
+    reads: list[tuple[Any, ...]] = []
+    original = source.raw_messages
 
-    def spy(self: McapSource, topic: str, start: int | None = None, end: int | None = None):  # type: ignore[no-untyped-def]
+    def spy(self: Any, topic: str, start: int | None = None, end: int | None = None):  # type: ignore[no-untyped-def]
         got = list(original(self, topic, start, end))
-        reads.append((start, end, len(got)))
+        reads.append((topic, start, end, len(got)))
         yield from got
 
-    monkeypatch.setattr(McapSource, "raw_messages", spy)
+    monkeypatch.setattr(source, "raw_messages", spy)
+    return reads
+
+
+@pytest.mark.parametrize(
+    ("name", "source"), [("drive_loops.ros2.mcap", McapSource), ("drive_loops.bag", RosbagsSource)]
+)
+def test_match_images_come_from_the_copy_with_no_ranged_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str, source: type[Any]
+) -> None:
+    """The copy streams every match before its query: kept from it, never read again."""
+    reads = _count_ranged_reads(monkeypatch, source)
+    output = tmp_path / "out.mcap"
+    annotate_log(SAMPLES / name, output, Parameters(), NO_VERIFY)
+    assert channels(output)[MATCH][1] > 0
+    assert reads == []
+
+
+def test_over_the_budget_each_match_is_read_again_into_the_same_bytes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Bounded memory: with no room for a kept image, one ranged read of one nanosecond per
+    loop closure, never the topic, and the output is the same file."""
+    kept = tmp_path / "kept.mcap"
+    annotate_log(ROS2, kept, Parameters(), NO_VERIFY)
+    monkeypatch.setattr(visualization, "KEPT_MATCHES_BYTES", 1)
+    reads = _count_ranged_reads(monkeypatch, McapSource)
+    read_again = tmp_path / "read_again.mcap"
+    annotate_log(ROS2, read_again, Parameters(), NO_VERIFY)
+    loops = reported_loops(read_again)
+    assert len(reads) == loops > 0
+    assert all(s is not None and e == s + 1 and n == 1 for _, s, e, n in reads)
+    assert read_again.read_bytes() == kept.read_bytes()
+
+
+def test_a_copier_that_passes_no_camera_message_reads_each_match_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A log format whose copier does not call `message_copied` still gets its match images."""
+    monkeypatch.setattr(_Annotator, "message_copied", lambda *args: None)
+    reads = _count_ranged_reads(monkeypatch, McapSource)
     output = tmp_path / "out.mcap"
     annotate_log(ROS2, output, Parameters(), NO_VERIFY)
-    loops = channels(output)[MATCH][1]
-    assert len(reads) == loops > 0
-    assert all(s is not None and e == s + 1 and n == 1 for s, e, n in reads)
+    assert len(reads) == channels(output)[MATCH][1] > 0
 
 
 def _copy_without(source: Path, target: Path, dropped: set[str]) -> None:
@@ -200,11 +253,12 @@ def test_json_profile_writes_foxglove_scene_update_and_image_annotations(tmp_pat
     assert found[TEXTS][0] == "foxglove.ImageAnnotations"
     assert found[MARKERS][0] == found[CURRENT][0] == "foxglove.SceneUpdate"
     [(_, data)] = list(messages(output, MARKERS))
-    lines = [entity["lines"][0] for entity in json.loads(data)["entities"]]
-    assert [line["type"] for line in lines] == [0, 2]  # LINE_STRIP, LINE_LIST
-    assert len(lines[1]["points"]) == 2 * found[CURRENT][1]
-    texts = [json.loads(d)["texts"][0]["text"] for _, d in messages(output, TEXTS)]
-    assert all("not verified (--no-verify)" in text for text in texts)
+    *_, (_, so_far) = messages(output, LOOP_LINES)
+    scenes = [json.loads(data)["entities"], json.loads(so_far)["entities"]]
+    assert [[entity["lines"][0]["type"] for entity in s] for s in scenes] == [[0], [2]]
+    assert len(scenes[1][0]["lines"][0]["points"]) == 2 * reported_loops(output)
+    texts = [json.loads(d)["texts"] for _, d in messages(output, TEXTS)]
+    assert all("not verified (--no-verify)" in t[0]["text"] for t in texts if t)
 
 
 def test_ros1_profile_channels_carry_md5sums(tmp_path: Path) -> None:
@@ -213,9 +267,9 @@ def test_ros1_profile_channels_carry_md5sums(tmp_path: Path) -> None:
     with output.open("rb") as stream:
         summary = make_reader(stream).get_summary()
     assert summary is not None
-    topics = (MATCH, TEXTS, MARKERS, CURRENT)
+    topics = (MATCH, TEXTS, MARKERS, CURRENT, LOOP_LINES)
     ours = {c.topic: c for c in summary.channels.values() if c.topic in topics}
-    assert len(ours) == 4
+    assert len(ours) == 5
     names = {t: summary.schemas[c.schema_id].name for t, c in ours.items()}
     assert names[MARKERS] == "visualization_msgs/MarkerArray"
     assert names[TEXTS] == "foxglove_msgs/ImageAnnotations"
@@ -278,6 +332,7 @@ def test_a_match_image_not_found_again_fails_with_no_output(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The log changed under the run: SourceError (exit 3), and no output appears."""
+    monkeypatch.setattr(visualization, "KEPT_MATCHES_BYTES", 0)  # each match read again
     monkeypatch.setattr(McapSource, "raw_messages", lambda *args: iter(()))
     output = tmp_path / "out.mcap"
     with pytest.raises(SourceError, match="is not found again"):

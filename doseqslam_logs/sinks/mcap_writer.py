@@ -181,6 +181,11 @@ class _Annotator:
         if self.visuals is not None:
             self.visuals.input_channel(topic, encoding, schema_id, metadata)
 
+    def message_copied(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Called after each input message copied (the visualization keeps match images)."""
+        if self.visuals is not None:
+            self.visuals.input_message(topic, log_time_ns, data)
+
     def visualized(self) -> dict[str, int]:
         """Writes the rest of the visualization; its messages per topic."""
         return {} if self.visuals is None else self.visuals.finish()

@@ -31,6 +31,8 @@ IMAGE_ANNOTATIONS = "foxglove_msgs/msg/ImageAnnotations"
 LINE_STRIP, LINE_LIST = "strip", "list"
 _ROS_MARKER_TYPES = {LINE_STRIP: 4, LINE_LIST: 5}  # visualization_msgs/Marker
 _SCENE_LINE_TYPES = {LINE_STRIP: 0, LINE_LIST: 2}  # foxglove.LinePrimitive
+_ROS_MARKER_DELETE = 2  # visualization_msgs/Marker action
+_SCENE_MATCHING_ID = 0  # foxglove.SceneEntityDeletion type
 LINE_LOOP_POINTS = 2  # foxglove PointsAnnotation type
 
 
@@ -91,6 +93,10 @@ class VisualEncoder(ABC):
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes: ...
 
     @abstractmethod
+    def deletion(self, frame_id: str, time_ns: int, namespace: str, number: int) -> bytes:
+        """A scene message that removes the drawing named (namespace, number) of its topic."""
+
+    @abstractmethod
     def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
         """foxglove ImageAnnotations: texts, and badges as filled LINE_LOOP points."""
 
@@ -146,11 +152,23 @@ class _RosVisualEncoder(RosBuilder, VisualEncoder):
         markers = [self._marker(frame_id, time_ns, item) for item in lines]
         return self._serialize(MARKER_ARRAY, {"markers": markers})
 
-    def _marker(self, frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
+    def deletion(self, frame_id: str, time_ns: int, namespace: str, number: int) -> bytes:
+        marker = self._named_marker(frame_id, time_ns, namespace, number)
+        marker["action"] = _ROS_MARKER_DELETE
+        return self._serialize(MARKER_ARRAY, {"markers": [marker]})
+
+    def _named_marker(
+        self, frame_id: str, time_ns: int, namespace: str, number: int
+    ) -> dict[str, Any]:
         marker = self.default("visualization_msgs/msg/Marker")
         marker["header"] = {**marker["header"], "stamp": time_dict(time_ns), "frame_id": frame_id}
-        marker.update(ns=lines.namespace, id=lines.number, type=_ROS_MARKER_TYPES[lines.kind])
+        marker.update(ns=namespace, id=number)
         marker["pose"]["orientation"]["w"] = 1.0
+        return marker
+
+    def _marker(self, frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
+        marker = self._named_marker(frame_id, time_ns, lines.namespace, lines.number)
+        marker["type"] = _ROS_MARKER_TYPES[lines.kind]
         marker["scale"]["x"] = lines.thickness_m  # a line's width
         marker["color"] = dict(zip("rgba", lines.color, strict=True))
         marker["points"] = [dict(zip("xyz", p, strict=True)) for p in lines.points]
@@ -196,8 +214,21 @@ class JsonVisualEncoder(VisualEncoder):
         entities = [_entity(frame_id, time_ns, item) for item in lines]
         return _json({"deletions": [], "entities": entities})
 
+    def deletion(self, frame_id: str, time_ns: int, namespace: str, number: int) -> bytes:
+        # Entities stamped no later than the deletion's timestamp go.
+        deletion = {
+            "timestamp": time_dict(time_ns),
+            "type": _SCENE_MATCHING_ID,
+            "id": _entity_id(namespace, number),
+        }
+        return _json({"deletions": [deletion], "entities": []})
+
     def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
         return _json(_annotations(time_ns, texts, badges))
+
+
+def _entity_id(namespace: str, number: int) -> str:
+    return f"{namespace}/{number}"
 
 
 def _entity(frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
@@ -216,7 +247,7 @@ def _entity(frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
     return {
         "timestamp": time_dict(time_ns),
         "frame_id": frame_id,
-        "id": f"{lines.namespace}/{lines.number}",
+        "id": _entity_id(lines.namespace, lines.number),
         "lifetime": {"sec": 0, "nsec": 0},  # forever
         "frame_locked": False,
         "metadata": [],

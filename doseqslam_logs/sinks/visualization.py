@@ -6,21 +6,32 @@ For each reported loop closure, at the query image's log time:
 - a text on the query image (`/doseqslam/match/annotations`) naming the match, its time and
   the verification result;
 - with a pose topic, the line from the query's to the match's position, highlighted
-  (`/doseqslam/match/marker`).
-With a pose topic, `/doseqslam/markers` holds the whole trajectory and one line per reported
-loop closure, written once, at the log's first message: a viewer seeking anywhere shows the
-latest message of each topic, so the run's picture and the current loop closure show wherever
-one scrubs (a scene built up message by message would show only its last line after a seek).
+  (`/doseqslam/match/marker`), and every reported loop closure's line so far
+  (`/doseqslam/loop_lines`, one message replacing the previous).
+With a pose topic, `/doseqslam/markers` holds the whole trajectory, written once, at the log's
+first message. A viewer seeking anywhere shows the latest message of each topic: the
+trajectory, the loop lines up to then and the current loop closure, wherever one scrubs (a
+scene built up message by message would show only its last line after a seek).
 
-Memory is bounded by the loop closures and the poses, never by the images: the match image is
-read again from the input (a second reader, one ranged read per loop closure) when the writer,
-copying the input in log-time order, reaches the query's time. The match is older than the
-query, so the writer has already registered the camera channel whose schema it reuses.
+Between loop closures those topics would go on showing the last one, so the first camera frame
+that is not a query, after each loop closure and at the log's start, has its own messages: a
+grey "no loop" frame on the match topic (`no_loop_frame`, made once per run), an empty
+ImageAnnotations, and the current loop closure's line deleted. One message there is enough for
+a viewer keeping the latest message, whether it plays or seeks; at every such frame would add
+a message per camera frame for the same picture.
+
+The match is older than the query, so the copy has already written both the camera channel
+whose schema the match images reuse and the match's own message: the writer keeps the camera
+messages at the plan's match times as they are copied, each until the last loop closure that
+shows it is written. Memory stays bounded: the kept images have a byte budget
+(KEPT_MATCHES_BYTES), and a match not kept (over the budget, not seen, or ambiguous) is read
+again from the input, one ranged read, when its query's time comes.
 """
 
 from __future__ import annotations
 
 import contextlib
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -33,6 +44,7 @@ from ..errors import SourceError
 from ..sources import Log, opened
 from ..sources.base import Source
 from ..sources.poses import PoseTrack, default_pose_topic, read_poses
+from .no_loop_frame import no_loop_message
 from .visual_encoders import (
     LINE_LIST,
     LINE_STRIP,
@@ -45,6 +57,8 @@ from .visual_encoders import (
 
 MARKERS_TOPIC = OUR_TOPIC_PREFIX + "markers"
 MATCH_MARKER_TOPIC = OUR_TOPIC_PREFIX + "match/marker"
+LOOP_LINES_TOPIC = OUR_TOPIC_PREFIX + "loop_lines"
+CURRENT_LOOP = ("doseqslam/match", 0)  # the current loop closure's line: namespace, number
 ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
 DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
 TRAJECTORY_COLOR = (0.6, 0.6, 0.6, 1.0)
@@ -53,6 +67,10 @@ CURRENT_LOOP_COLOR = (1.0, 0.3, 0.1, 1.0)
 BADGE_PX = 20.0  # the square drawn on the query image (Foxglove 1.48 draws no texts)
 TEXT_COLOR = (1.0, 1.0, 1.0, 1.0)
 TEXT_BACKGROUND = (0.0, 0.0, 0.0, 0.6)
+# The match images kept from the copy at most (bytes); beyond it a match is read again.
+KEPT_MATCHES_BYTES = 64 * 1024 * 1024
+# Camera messages tried for the "no loop" frame (a damaged one is not understood) at most.
+NO_LOOP_TRIES = 3
 
 
 def match_topic(camera_topic: str) -> str:
@@ -158,6 +176,12 @@ class VisualWriter:
         self.channel_ids: dict[str, int] = {}
         self.written: dict[str, int] = {}
         self._source: Source | None = None
+        self._kept = _KeptMatches(plan.loops, KEPT_MATCHES_BYTES)
+        self._loop_ends: list[tuple[float, float, float]] = []  # the loop lines written so far
+        self._no_loop_due = True  # the next camera frame that is no query says "no loop"
+        self._no_loop_annotations = encoder.annotations(0, [], [])
+        self._no_loop_image: bytes | None = None
+        self._no_loop_tries = 0
 
     def input_channel(
         self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
@@ -165,6 +189,15 @@ class VisualWriter:
         """Called for each input channel copied: the camera's schema is the match images'."""
         if topic == self.plan.camera_topic and self.camera is None:
             self.camera = (schema_id, encoding, dict(metadata))
+
+    def input_message(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Called after each input message copied: a camera message at a match time is kept."""
+        if topic != self.plan.camera_topic:
+            return
+        self._kept.offer(log_time_ns, data)
+        if self._no_loop_due and not self._is_query(log_time_ns):
+            self._no_loop_due = False
+            self._write_no_loop(log_time_ns, data)
 
     def write_until(self, log_time_ns: int | None) -> None:
         """Writes what is due at log times <= log_time_ns (everything for None)."""
@@ -191,9 +224,7 @@ class VisualWriter:
         assert trajectory is not None
         points = [(float(x), float(y), float(z)) for x, y, z in trajectory.track.positions]
         path = Lines("doseqslam/trajectory", 0, LINE_STRIP, points, TRAJECTORY_COLOR, 0.1)
-        ends = [end for loop in self.plan.loops for end in self._ends(trajectory, loop)]
-        loops = Lines("doseqslam/loop_closures", 0, LINE_LIST, ends, LOOP_COLOR, 0.08)
-        data = self.encoder.scene(trajectory.frame_id, log_time_ns, [path, loops])
+        data = self.encoder.scene(trajectory.frame_id, log_time_ns, [path])
         self._add(MARKERS_TOPIC, self.encoder.scene_schema, log_time_ns, data)
 
     @staticmethod
@@ -207,35 +238,79 @@ class VisualWriter:
         badge = Badge(4.0, 4.0, BADGE_PX, LOOP_COLOR)
         annotations = self.encoder.annotations(loop.query_time_ns, [text], [badge])
         self._add(ANNOTATIONS_TOPIC, self.encoder.annotations_schema, time, annotations)
+        self._no_loop_due = True
+        trajectory = self.plan.trajectory
+        if trajectory is None:
+            return
+        ends = self._ends(trajectory, loop)
+        lines = Lines(*CURRENT_LOOP, LINE_LIST, ends, CURRENT_LOOP_COLOR, 0.6)
+        data = self.encoder.scene(trajectory.frame_id, time, [lines])
+        self._add(MATCH_MARKER_TOPIC, self.encoder.scene_schema, time, data)
+        # The lines so far in one message: a seek shows them all (bytes grow with loops²).
+        self._loop_ends.extend(ends)
+        so_far = Lines("doseqslam/loop_closures", 0, LINE_LIST, self._loop_ends, LOOP_COLOR, 0.08)
+        data = self.encoder.scene(trajectory.frame_id, time, [so_far])
+        self._add(LOOP_LINES_TOPIC, self.encoder.scene_schema, time, data)
+
+    def _is_query(self, log_time_ns: int) -> bool:
+        """Whether the camera frame at this log time is the query of the last loop written."""
+        last = self.plan.loops[self.position - 1] if self.position else None
+        return last is not None and last.query_log_time_ns == log_time_ns
+
+    def _write_no_loop(self, log_time_ns: int, sample: bytes) -> None:
+        """No current loop closure from this frame on (see the module's docstring)."""
+        schema = self.encoder.annotations_schema
+        self._add(ANNOTATIONS_TOPIC, schema, log_time_ns, self._no_loop_annotations)
         trajectory = self.plan.trajectory
         if trajectory is not None:
-            ends = self._ends(trajectory, loop)
-            lines = Lines("doseqslam/match", 0, LINE_LIST, ends, CURRENT_LOOP_COLOR, 0.6)
-            data = self.encoder.scene(trajectory.frame_id, time, [lines])
-            self._add(MATCH_MARKER_TOPIC, self.encoder.scene_schema, time, data)
+            data = self.encoder.deletion(trajectory.frame_id, log_time_ns, *CURRENT_LOOP)
+            self._add(MATCH_MARKER_TOPIC, self.encoder.scene_schema, log_time_ns, data)
+        if self._no_loop_image is None and self._no_loop_tries < NO_LOOP_TRIES:
+            self._no_loop_tries += 1
+            self._no_loop_image = self._build_no_loop_image(log_time_ns, sample)
+        if self._no_loop_image is not None:
+            self._add_message(self._match_channel(), log_time_ns, self._no_loop_image)
+
+    def _build_no_loop_image(self, log_time_ns: int, sample: bytes) -> bytes | None:
+        """The "no loop" frame made from the camera message `sample` at this log time."""
+        if self.camera is None:
+            return None
+        images = self._input().image_messages(self.plan.camera_topic, log_time_ns, log_time_ns + 1)
+        image = next(iter(images), None)
+        return None if image is None else no_loop_message(sample, image, self.camera[1])
 
     def _write_match_image(self, loop: VisualLoop) -> None:
+        kept = self._kept.take(loop.match_log_time_ns)
         if self.camera is None:
             return  # the camera channel was not copied (a sidecar): no schema to reuse
-        data = self._read_match(loop)
+        data = self._read_match(loop) if kept is None else kept
+        self._add_message(self._match_channel(), loop.query_log_time_ns, data)
+
+    def _match_channel(self) -> str:
+        """The match images' topic, its channel registered with the camera's schema."""
         topic = match_topic(self.plan.camera_topic)
         if topic not in self.channel_ids:
+            assert self.camera is not None
             schema_id, encoding, metadata = self.camera
             self.channel_ids[topic] = self.writer.register_channel(
                 topic, encoding, schema_id, metadata
             )
-        self._add_message(topic, loop.query_log_time_ns, data)
+        return topic
+
+    def _input(self) -> Source:
+        """The input, opened at the first read."""
+        if self._source is None:
+            self._source = self._opened.enter_context(opened(self.log))
+        return self._source
 
     def _read_match(self, loop: VisualLoop) -> bytes:
         """The match frame's message: the first of the camera topic at its log time."""
-        if self._source is None:
-            self._source = self._opened.enter_context(opened(self.log))
+        source = self._input()
         start = loop.match_log_time_ns
-        messages = self._source.raw_messages(self.plan.camera_topic, start, start + 1)
-        for _, data in messages:
+        for _, data in source.raw_messages(self.plan.camera_topic, start, start + 1):
             return data
         raise SourceError(
-            f"{self._source.path}: the image of {self.plan.camera_topic} at log time {start} "
+            f"{source.path}: the image of {self.plan.camera_topic} at log time {start} "
             "is not found again (the log changed under us)"
         )
 
@@ -254,3 +329,44 @@ class VisualWriter:
         channel_id = self.channel_ids[topic]
         self.writer.add_message(channel_id, log_time_ns, data, log_time_ns, sequence & 0xFFFFFFFF)
         self.written[topic] = sequence + 1
+
+
+class _KeptMatches:
+    """The camera messages at the loops' match times, kept from the copy until the last loop
+    closure that shows each is written, within a byte budget."""
+
+    def __init__(self, loops: Sequence[VisualLoop], budget_bytes: int) -> None:
+        self.budget_bytes = budget_bytes
+        self.uses = Counter(loop.match_log_time_ns for loop in loops)  # loops still to write
+        self.images: dict[int, bytes] = {}
+        self.seen: set[int] = set()  # match times whose first camera message has gone by
+        self.kept_bytes = 0
+
+    def offer(self, log_time_ns: int, data: bytes) -> None:
+        """A copied camera message: kept when it is the first at a match time still needed."""
+        if self.uses[log_time_ns] <= 0:
+            return
+        if log_time_ns in self.seen:
+            # Two images at one log time: the ranged read settles which one is the match.
+            self._drop(log_time_ns)
+            return
+        self.seen.add(log_time_ns)
+        if self.kept_bytes + len(data) <= self.budget_bytes:
+            self.images[log_time_ns] = data
+            self.kept_bytes += len(data)
+
+    def take(self, log_time_ns: int) -> bytes | None:
+        """The kept image of one loop closure's match (None: read it again), dropped once no
+        loop closure still to write shows it."""
+        data = self.images.get(log_time_ns)
+        self.uses[log_time_ns] -= 1
+        if self.uses[log_time_ns] <= 0:
+            del self.uses[log_time_ns]
+            self.seen.discard(log_time_ns)
+            self._drop(log_time_ns)
+        return data
+
+    def _drop(self, log_time_ns: int) -> None:
+        data = self.images.pop(log_time_ns, None)
+        if data is not None:
+            self.kept_bytes -= len(data)

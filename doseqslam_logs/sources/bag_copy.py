@@ -81,6 +81,7 @@ class _BagCopier:
         self.hooks = hooks
         self.schema_ids: dict[tuple[str, str, bytes], int] = {}
         self.channel_ids: dict[Any, int] = {}
+        self.topics: dict[Any, str] = {}  # channel key -> topic, of the copied channels
         self.dropped: set[str] = set()
         self.copied = 0
 
@@ -99,6 +100,7 @@ class _BagCopier:
             self.channel_ids[key] = self.writer.register_channel(
                 topic, encoding, schema_id, metadata
             )
+            self.topics[key] = topic
             self.hooks.channel_copied(topic, encoding, schema_id, metadata)
 
     def message(self, key: Any, timestamp: int, data: bytes) -> None:
@@ -106,8 +108,10 @@ class _BagCopier:
         if channel_id is None:
             return  # one of our previous channels
         self.hooks.before_message(timestamp)
+        written = bytes(data)
         # Bags record one time per message: it is both the log and the publish time.
-        self.writer.add_message(channel_id, timestamp, bytes(data), timestamp, 0)
+        self.writer.add_message(channel_id, timestamp, written, timestamp, 0)
+        self.hooks.message_copied(self.topics[key], timestamp, written)
         self.copied += 1
 
     def copy_ros1(self, path: Path) -> None:

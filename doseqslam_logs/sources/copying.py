@@ -42,6 +42,11 @@ class CopyHooks(Protocol):
         """Called for each input channel copied, with its id in the output."""
         ...
 
+    def message_copied(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Called after each copied message, with its bytes as written: the sink keeps what
+        it republishes later (the match images) instead of reading the input again."""
+        ...
+
 
 @dataclass(frozen=True)
 class Copied:

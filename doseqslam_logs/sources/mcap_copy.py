@@ -60,6 +60,7 @@ class _McapCopier:
         self.schemas: dict[int, Schema] = {}
         self.schema_ids: dict[int, int] = {}  # input schema id -> output schema id
         self.channel_ids: dict[int, int] = {}  # input channel id -> output channel id
+        self.topics: dict[int, str] = {}  # input channel id -> topic, of the copied channels
         self.dropped_channels: dict[int, str] = {}  # input channel id -> topic
         self.dropped_schemas: set[int] = set()  # schemas used by dropped channels
         self.copied = 0
@@ -91,6 +92,7 @@ class _McapCopier:
         self.channel_ids[channel.id] = self.writer.register_channel(
             channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
         )
+        self.topics[channel.id] = channel.topic
         self.hooks.channel_copied(
             channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
         )
@@ -117,6 +119,7 @@ class _McapCopier:
         self.writer.add_message(
             channel_id, message.log_time, message.data, message.publish_time, message.sequence
         )
+        self.hooks.message_copied(self.topics[message.channel_id], message.log_time, message.data)
         self.copied += 1
 
     def copy_unused_schemas(self) -> None:

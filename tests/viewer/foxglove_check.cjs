@@ -1,9 +1,11 @@
 // Opens annotated logs in the Foxglove Studio 1.48 web app (npm @foxglove/studio-base's
 // prebuilt bundle) in headless Chromium and prints, per log, one JSON line: the topics the
 // app lists and the text of its Problems tab, with a screenshot of each tab. Usage:
-//   node foxglove_check.cjs MODULES_DIR CHROMIUM OUT_DIR [--layout LAYOUT.json AT] LOG.mcap...
-// With --layout, each log opens in that Foxglove layout instead of the default one, and the
-// screenshot "layout" is taken at fraction AT (0..1) of the log's time span.
+//   node foxglove_check.cjs MODULES_DIR CHROMIUM OUT_DIR [--layout LAYOUT.json AT[,AT...]] LOG.mcap...
+// With --layout, each log opens in that Foxglove layout instead of the default one, and is
+// seeked to each fraction AT (0..1) of the log's time span in turn: a screenshot there
+// ("layout" for the first, "layout.AT" for the others), the panels' text and where the
+// panels' canvases are.
 // MODULES_DIR holds node_modules with playwright-core, react 17, react-dom 17 and studio-base.
 "use strict";
 const fs = require("fs");
@@ -12,7 +14,7 @@ const path = require("path");
 
 const [modules, chromium, outDir, ...rest] = process.argv.slice(2);
 const layoutFile = rest[0] === "--layout" ? rest[1] : undefined;
-const layoutAt = layoutFile ? Number(rest[2]) : undefined;
+const layoutAts = layoutFile ? rest[2].split(",").map(Number) : [];
 const logs = layoutFile ? rest.slice(3) : rest;
 // The layout, stored as Foxglove's layout storage holds it, and selected in the user profile.
 const LAYOUT_ID = "doseqslam";
@@ -115,11 +117,20 @@ async function main() {
       // The scrubber is the bar just above the playback buttons, across the window.
       const buttons = await page.getByTitle("Seek backward").boundingBox();
       if (storedLayout) {
-        await page.mouse.click(page.viewportSize().width * layoutAt, buttons.y - 24);
-        await page.waitForTimeout(4000);
-        await page.screenshot({ path: shot("layout") });
-        const message = (await text()).split("\n"); // the panels' text after the seek
-        console.log(JSON.stringify({ log, topics, problems, message, errors }));
+        const seeks = [];
+        for (const [k, at] of layoutAts.entries()) {
+          await page.mouse.click(page.viewportSize().width * at, buttons.y - 24);
+          await page.waitForTimeout(4000);
+          const screenshot = shot(k === 0 ? "layout" : `layout.${at}`);
+          await page.screenshot({ path: screenshot });
+          const message = (await text()).split("\n"); // the panels' text after the seek
+          const canvases = await page.evaluate(() => [...document.querySelectorAll("canvas")]
+            .map((c) => c.getBoundingClientRect()).filter((r) => r.width > 0 && r.height > 0)
+            .map((r) => ({ x: r.x, y: r.y, width: r.width, height: r.height })));
+          seeks.push({ at, screenshot, message, canvases });
+        }
+        const { message } = seeks[0];
+        console.log(JSON.stringify({ log, topics, problems, message, seeks, errors }));
         await page.close();
         continue;
       }
