@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar, cast
 
+from ..errors import SourceError
+
 ImageKind = Literal["raw", "compressed"]
 
 # The first bytes of each container, the one definition that readers and writers share.
@@ -93,6 +95,32 @@ class SideMessage:
     topic: str
     log_time_ns: int
     decode: Callable[[], DecodedMessage]
+
+
+class SideTopicReader:
+    """A reader of one side topic fed message by message (a pose topic, the CameraInfo): the
+    messages of another topic's pass are decoded only while it wants more, and a topic that
+    cannot be decoded at all is kept as `error`, raised when the result is asked for."""
+
+    error: SourceError | None = None
+
+    @property
+    def wants_more(self) -> bool:
+        """Whether a later message could still change the result."""
+        return self.error is None
+
+    def add(self, message: DecodedMessage) -> None:
+        """The topic's next message."""
+        raise NotImplementedError
+
+    def add_side(self, message: SideMessage) -> None:
+        """`add` for a message met in another topic's pass, decoded here."""
+        if not self.wants_more:
+            return
+        try:
+            self.add(message.decode())
+        except SourceError as exc:
+            self.error = exc
 
 
 class Source(Protocol):

@@ -17,9 +17,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..errors import SourceError
 from . import Log, opened
-from .base import DecodedMessage, SideMessage, Source
+from .base import DecodedMessage, SideTopicReader, Source
 
 CAMERA_INFO_TYPES = (
     "sensor_msgs/msg/CameraInfo",
@@ -80,7 +79,7 @@ def find_camera_info(log: Log, image_topic: str) -> CameraInfoSearch:
     return reader.found()
 
 
-class CameraInfoReader:
+class CameraInfoReader(SideTopicReader):
     """The camera's CameraInfo messages in, a CameraInfoSearch out: `find_camera_info` feeds
     it the topic, a run the messages its replay's pass meets (`add_side`)."""
 
@@ -88,7 +87,6 @@ class CameraInfoReader:
         topics = [c.topic for c in source.channels() if _is_camera_info(c.message_type)]
         self.search = CameraInfoSearch(_closest(topics, image_topic) or "")
         self.seen = 0
-        self.error: SourceError | None = None  # the topic could not be decoded: `found` raises
 
     @property
     def wants_more(self) -> bool:
@@ -110,15 +108,6 @@ class CameraInfoReader:
             search.info = info
         else:
             search.unusable[info] += 1
-
-    def add_side(self, message: SideMessage) -> None:
-        """`add` for a message met in another topic's pass, decoded only while it may count."""
-        if not self.wants_more:
-            return
-        try:
-            self.add(message.decode())
-        except SourceError as exc:
-            self.error = exc
 
     def found(self) -> CameraInfoSearch:
         """The search; SourceError when the topic could not be decoded."""

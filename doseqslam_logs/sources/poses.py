@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from ..errors import SourceError
 from . import Log, opened
-from .base import DecodedMessage, SideMessage, Source
+from .base import DecodedMessage, SideTopicReader, Source
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -184,7 +184,7 @@ def read_poses(log: Log, topic: str) -> PoseTrack:
     return poses.track()
 
 
-class PoseReader:
+class PoseReader(SideTopicReader):
     """A pose topic's messages in, its PoseTrack out: `read_poses` feeds it a whole topic,
     a run the messages its replay's pass meets (`add_side`).
 
@@ -196,7 +196,6 @@ class PoseReader:
         types = [c.message_type for c in source.channels() if c.topic == topic]
         self.kind = _check_type(self.path, topic, [n for t in types for n in t.split(", ")])
         self.columns = _Columns(self.path, topic, with_covariance=self.kind in _WITH_COVARIANCE)
-        self.error: SourceError | None = None  # the topic could not be decoded: `track` raises
 
     def add(self, message: DecodedMessage) -> None:
         """One message of the topic, in log-time order: a pose kept, or why not counted."""
@@ -211,15 +210,6 @@ class PoseReader:
             return
         if columns.add(pose) and len(columns.times) == 1:
             columns.frame_id = frame_id_of(message.message)
-
-    def add_side(self, message: SideMessage) -> None:
-        """`add` for a message met in another topic's pass (decoded here)."""
-        if self.error is not None:
-            return
-        try:
-            self.add(message.decode())
-        except SourceError as exc:
-            self.error = exc
 
     def track(self) -> PoseTrack:
         """The poses read; SourceError when the topic holds no usable pose or could not be
