@@ -5,6 +5,7 @@ last loop closure. And the loop lines appear as the loop closures happen."""
 from __future__ import annotations
 
 import bisect
+import itertools
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -12,12 +13,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.detector import Parameters
 from doseqslam_logs.pipeline.annotate import AnnotateOptions, annotate_log
 from doseqslam_logs.sinks import no_loop_frame
+from doseqslam_logs.sinks.visualization import EVERY_LOOP_LINES, LOOP_LINES_GROWTH, loop_lines_due
 from doseqslam_logs.sources import opened
 from doseqslam_logs.sources.images import decode_gray
 from loggen import make_sample_logs as gen
@@ -159,6 +163,23 @@ def test_loop_lines_appear_as_the_loop_closures_happen(drawn: Drawn) -> None:
         assert [len(points) for points in lines_of(drawn.profile, scene)] == [2 * count]
     # Between the first two frames after the start, no loop line yet: the topic is silent.
     assert so_far[0][0] > drawn.frames[0]
+
+
+@given(total=st.integers(1, 20_000))
+def test_the_loop_lines_written_stay_linear_in_the_loop_closures(total: int) -> None:
+    # What a log with thousands of loop closures writes: every line so far at each of the
+    # first EVERY_LOOP_LINES, then as they grow by LOOP_LINES_GROWTH, and all at the last.
+    written, last = [], 0
+    for lines in range(1, total + 1):
+        if loop_lines_due(lines, last, total):
+            written.append(lines)
+            last = lines
+    assert written[-1] == total
+    assert written[:EVERY_LOOP_LINES] == list(range(1, min(total, EVERY_LOOP_LINES) + 1))
+    bound = EVERY_LOOP_LINES * (EVERY_LOOP_LINES + 1) / 2 + (1 / LOOP_LINES_GROWTH + 2) * total
+    assert sum(written) <= bound
+    grown = [b / a for a, b in itertools.pairwise(written) if a >= EVERY_LOOP_LINES]
+    assert all(g <= 1 + LOOP_LINES_GROWTH + 1 / EVERY_LOOP_LINES for g in grown[:-1])
 
 
 RAW_DRIVE = gen.Config(

@@ -7,7 +7,8 @@ For each reported loop closure, at the query image's log time:
   the verification result;
 - with a pose topic, the line from the query's to the match's position, highlighted
   (`/doseqslam/match/marker`), and every reported loop closure's line so far
-  (`/doseqslam/loop_lines`, one message replacing the previous).
+  (`/doseqslam/loop_lines`, one message replacing the previous; past EVERY_LOOP_LINES loop
+  closures, only as they grow by LOOP_LINES_GROWTH, so that the bytes stay linear).
 With a pose topic, `/doseqslam/markers` holds the whole trajectory, written once, at the log's
 first message. A viewer seeking anywhere shows the latest message of each topic: the
 trajectory, the loop lines up to then and the current loop closure, wherever one scrubs (a
@@ -58,6 +59,10 @@ from .visual_encoders import (
 MARKERS_TOPIC = OUR_TOPIC_PREFIX + "markers"
 MATCH_MARKER_TOPIC = OUR_TOPIC_PREFIX + "match/marker"
 LOOP_LINES_TOPIC = OUR_TOPIC_PREFIX + "loop_lines"
+# The loop lines so far are written at every loop closure up to this many, then each time they
+# have grown by this fraction (`loop_lines_due`).
+EVERY_LOOP_LINES = 256
+LOOP_LINES_GROWTH = 1 / 16
 CURRENT_LOOP = ("doseqslam/match", 0)  # the current loop closure's line: namespace, number
 ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
 DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
@@ -161,6 +166,20 @@ def read_trajectory(
     return Trajectory(topic, track.frame_id or DEFAULT_FRAME_ID, track)
 
 
+def loop_lines_due(lines: int, last_written: int, total: int) -> bool:
+    """Whether the loop lines so far (`lines`, the last message held `last_written`, the run
+    reports `total`) get a message: at every loop closure up to EVERY_LOOP_LINES, then each
+    time they have grown by LOOP_LINES_GROWTH, and at the last one. Each message holds every
+    line so far, so a message per loop closure would write loops² lines; this writes fewer than
+    EVERY_LOOP_LINES² / 2 + (1 / LOOP_LINES_GROWTH + 2) * total lines in all. The current
+    loop closure's own line is drawn at every one."""
+    return (
+        lines <= EVERY_LOOP_LINES
+        or lines >= last_written * (1 + LOOP_LINES_GROWTH)
+        or lines == total
+    )
+
+
 class VisualWriter:
     """Writes the visualization channels into the output, interleaved by log time."""
 
@@ -177,7 +196,8 @@ class VisualWriter:
         self.written: dict[str, int] = {}
         self._source: Source | None = None
         self._kept = _KeptMatches(plan.loops, KEPT_MATCHES_BYTES)
-        self._loop_ends: list[tuple[float, float, float]] = []  # the loop lines written so far
+        self._loop_ends: list[tuple[float, float, float]] = []  # the loop lines so far
+        self._loop_lines_drawn = 0  # lines in the last loop lines message
         self._no_loop_due = True  # the next camera frame that is no query says "no loop"
         self._no_loop_annotations = encoder.annotations(0, [], [])
         self._no_loop_image: bytes | None = None
@@ -246,8 +266,12 @@ class VisualWriter:
         lines = Lines(*CURRENT_LOOP, LINE_LIST, ends, CURRENT_LOOP_COLOR, 0.6)
         data = self.encoder.scene(trajectory.frame_id, time, [lines])
         self._add(MATCH_MARKER_TOPIC, self.encoder.scene_schema, time, data)
-        # The lines so far in one message: a seek shows them all (bytes grow with loops²).
+        # The lines so far in one message: a seek shows them all.
         self._loop_ends.extend(ends)
+        drawn = len(self._loop_ends) // 2
+        if not loop_lines_due(drawn, self._loop_lines_drawn, len(self.plan.loops)):
+            return
+        self._loop_lines_drawn = drawn
         so_far = Lines("doseqslam/loop_closures", 0, LINE_LIST, self._loop_ends, LOOP_COLOR, 0.08)
         data = self.encoder.scene(trajectory.frame_id, time, [so_far])
         self._add(LOOP_LINES_TOPIC, self.encoder.scene_schema, time, data)
