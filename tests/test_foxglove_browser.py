@@ -48,6 +48,7 @@ OUR_TOPICS = (
     "/doseqslam/markers",
     "/doseqslam/match/marker",
     "/doseqslam/loop_lines",
+    "/doseqslam/current_pose",
 )
 LAYOUT = REPO / "docs" / "foxglove_layout.json"
 # Where the layout screenshot is taken: 108 s of the 119.5 s drive, query frame 216 of a run

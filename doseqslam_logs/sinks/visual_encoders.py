@@ -2,7 +2,8 @@
 
 Foxglove and Lichtblick draw a message with no custom panel when its schema is one they know:
 `visualization_msgs/MarkerArray` and `foxglove_msgs/ImageAnnotations` in the ROS profiles,
-`foxglove.SceneUpdate` and `foxglove.ImageAnnotations` (JSON) in every other profile. The
+`foxglove.SceneUpdate` and `foxglove.ImageAnnotations` (JSON) in every other profile; a pose
+is `geometry_msgs/PoseStamped` in the ROS profiles, `foxglove.PoseInFrame` (JSON) otherwise. The
 builders here take the same plain description (lines in a frame, texts on an image) and give
 each profile's schema and bytes. Definitions come from rosbags' type stores
 (visualization_msgs) and from `schemas/` (foxglove_msgs, the JSON schemas).
@@ -24,9 +25,11 @@ from ..annotations.schema_files import read_schema
 from .encoders import RosBuilder
 
 Point3 = tuple[float, float, float]
+Quaternion = tuple[float, float, float, float]  # x, y, z, w
 Rgba = tuple[float, float, float, float]
 FOXGLOVE_MSGS = ("Color", "Point2", "CircleAnnotation", "PointsAnnotation", "TextAnnotation")
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 IMAGE_ANNOTATIONS = "foxglove_msgs/msg/ImageAnnotations"
 LINE_STRIP, LINE_LIST = "strip", "list"
 _ROS_MARKER_TYPES = {LINE_STRIP: 4, LINE_LIST: 5}  # visualization_msgs/Marker
@@ -90,7 +93,14 @@ class VisualEncoder(ABC):
     def annotations_schema(self) -> SchemaInfo: ...
 
     @abstractmethod
+    def pose_schema(self) -> SchemaInfo: ...
+
+    @abstractmethod
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes: ...
+
+    @abstractmethod
+    def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
+        """One pose in a frame, stamped at `time_ns`."""
 
     @abstractmethod
     def deletion(self, frame_id: str, time_ns: int, namespace: str, number: int) -> bytes:
@@ -147,6 +157,15 @@ class _RosVisualEncoder(RosBuilder, VisualEncoder):
 
     def annotations_schema(self) -> SchemaInfo:
         return self._schema(IMAGE_ANNOTATIONS)
+
+    def pose_schema(self) -> SchemaInfo:
+        return self._schema(POSE_STAMPED)
+
+    def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
+        message = self.default(POSE_STAMPED)
+        message["header"] = {**message["header"], "stamp": time_dict(time_ns), "frame_id": frame_id}
+        message["pose"] = _pose(position, orientation)
+        return self._serialize(POSE_STAMPED, message)
 
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes:
         markers = [self._marker(frame_id, time_ns, item) for item in lines]
@@ -210,6 +229,13 @@ class JsonVisualEncoder(VisualEncoder):
     def annotations_schema(self) -> SchemaInfo:
         return self._schema("foxglove.ImageAnnotations")
 
+    def pose_schema(self) -> SchemaInfo:
+        return self._schema("foxglove.PoseInFrame")
+
+    def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
+        pose = _pose(position, orientation)
+        return _json({"timestamp": time_dict(time_ns), "frame_id": frame_id, "pose": pose})
+
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes:
         entities = [_entity(frame_id, time_ns, item) for item in lines]
         return _json({"deletions": [], "entities": entities})
@@ -259,6 +285,11 @@ def _entity(frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
 
 def _xyz(point: Sequence[float]) -> dict[str, float]:
     return dict(zip("xyz", (float(v) for v in point), strict=True))
+
+
+def _pose(position: Point3, orientation: Quaternion) -> dict[str, dict[str, float]]:
+    xyzw = dict(zip("xyzw", (float(v) for v in orientation), strict=True))
+    return {"position": _xyz(position), "orientation": xyzw}
 
 
 def _annotations(time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> dict[str, Any]:

@@ -9,9 +9,11 @@ For each reported loop closure, at the query image's log time:
   (`/doseqslam/match/marker`), and every reported loop closure's line so far
   (`/doseqslam/loop_lines`, one message replacing the previous).
 With a pose topic, `/doseqslam/markers` holds the whole trajectory, written once, at the log's
-first message. A viewer seeking anywhere shows the latest message of each topic: the
-trajectory, the loop lines up to then and the current loop closure, wherever one scrubs (a
-scene built up message by message would show only its last line after a seek).
+first message, and `/doseqslam/current_pose` the trajectory's pose at each camera frame (at its
+log time, interpolated at the frame's time): Foxglove's 3-D panel draws no nav_msgs/Odometry,
+so this arrow is where the robot is. A viewer seeking anywhere shows the latest message of
+each topic: the trajectory, the loop lines up to then and the current loop closure, wherever
+one scrubs (a scene built up message by message would show only its last line after a seek).
 
 Between loop closures those topics would go on showing the last one, so the first camera frame
 that is not a query, after each loop closure and at the log's start, has its own messages: a
@@ -37,13 +39,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from mcap.writer import Writer
 
-from ..annotations.records import OUR_TOPIC_PREFIX, LoopClosureRecord, TimedMessage
+from ..annotations.records import OUR_TOPIC_PREFIX, FrameTimes, LoopClosureRecord, TimedMessage
 from ..errors import SourceError
 from ..sources import Log, opened
 from ..sources.base import Source
-from ..sources.poses import PoseTrack, default_pose_topic, read_poses
+from ..sources.poses import PoseTrack, default_pose_topic, read_poses, slerp
 from .no_loop_frame import no_loop_message
 from .visual_encoders import (
     LINE_LIST,
@@ -60,6 +63,7 @@ MATCH_MARKER_TOPIC = OUR_TOPIC_PREFIX + "match/marker"
 LOOP_LINES_TOPIC = OUR_TOPIC_PREFIX + "loop_lines"
 CURRENT_LOOP = ("doseqslam/match", 0)  # the current loop closure's line: namespace, number
 ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
+CURRENT_POSE_TOPIC = OUR_TOPIC_PREFIX + "current_pose"
 DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
 TRAJECTORY_COLOR = (0.6, 0.6, 0.6, 1.0)
 LOOP_COLOR = (0.1, 0.8, 0.2, 1.0)
@@ -105,6 +109,40 @@ class Trajectory:
         x, y, z = (float(np.interp(time_ns, times, positions[:, k])) for k in range(3))
         return x, y, z
 
+    def orientation(self, time_ns: int) -> tuple[float, float, float, float]:
+        """The orientation (x, y, z, w) at `time_ns`, by slerp (the end poses outside)."""
+        times, quaternions = self.track.times_ns, self.track.quaternions_xyzw
+        upper = int(np.clip(np.searchsorted(times, time_ns), 0, len(times) - 1))
+        lower = max(upper - 1, 0)
+        span = int(times[upper] - times[lower])
+        fraction = min(max((time_ns - int(times[lower])) / span, 0.0), 1.0) if span else 1.0
+        q = slerp(quaternions[lower], quaternions[upper], np.float64(fraction))
+        x, y, z, w = (float(v) for v in q)
+        return x, y, z, w
+
+
+@dataclass(frozen=True)
+class FrameClock:
+    """The camera frames by log time, and the time each was given (its header stamp, or its
+    log time): what a frame's current pose is interpolated at."""
+
+    log_times_ns: npt.NDArray[np.int64]  # ascending
+    times_ns: npt.NDArray[np.int64]
+
+    @classmethod
+    def of(cls, frame_times: FrameTimes, time_source: str) -> FrameClock:
+        order = np.argsort(frame_times.log_times_ns, kind="stable")
+        times = frame_times.detector_times_ns(time_source)
+        return cls(frame_times.log_times_ns[order], times[order])
+
+    def time_at(self, log_time_ns: int) -> int | None:
+        """The time of the frame logged at `log_time_ns`; None for a camera message that is
+        no frame of the run (skipped, or outside the time range asked for)."""
+        k = int(np.searchsorted(self.log_times_ns, log_time_ns))
+        if k < len(self.log_times_ns) and int(self.log_times_ns[k]) == log_time_ns:
+            return int(self.times_ns[k])
+        return None
+
 
 @dataclass(frozen=True)
 class Visualization:
@@ -113,6 +151,7 @@ class Visualization:
     camera_topic: str
     loops: Sequence[VisualLoop]  # in query log-time order
     trajectory: Trajectory | None
+    frames: FrameClock | None = None  # None: no current pose
 
 
 def caption(record: LoopClosureRecord) -> str:
@@ -182,6 +221,7 @@ class VisualWriter:
         self._no_loop_annotations = encoder.annotations(0, [], [])
         self._no_loop_image: bytes | None = None
         self._no_loop_tries = 0
+        self._last_pose_log_time: int | None = None
 
     def input_channel(
         self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
@@ -195,6 +235,7 @@ class VisualWriter:
         if topic != self.plan.camera_topic:
             return
         self._kept.offer(log_time_ns, data)
+        self._write_current_pose(log_time_ns)
         if self._no_loop_due and not self._is_query(log_time_ns):
             self._no_loop_due = False
             self._write_no_loop(log_time_ns, data)
@@ -251,6 +292,19 @@ class VisualWriter:
         so_far = Lines("doseqslam/loop_closures", 0, LINE_LIST, self._loop_ends, LOOP_COLOR, 0.08)
         data = self.encoder.scene(trajectory.frame_id, time, [so_far])
         self._add(LOOP_LINES_TOPIC, self.encoder.scene_schema, time, data)
+
+    def _write_current_pose(self, log_time_ns: int) -> None:
+        """The trajectory's pose at the camera frame logged at this time, once per log time."""
+        trajectory, frames = self.plan.trajectory, self.plan.frames
+        if trajectory is None or frames is None or log_time_ns == self._last_pose_log_time:
+            return
+        time_ns = frames.time_at(log_time_ns)
+        if time_ns is None:
+            return
+        self._last_pose_log_time = log_time_ns
+        position, orientation = trajectory.position(time_ns), trajectory.orientation(time_ns)
+        data = self.encoder.pose(trajectory.frame_id, time_ns, position, orientation)
+        self._add(CURRENT_POSE_TOPIC, self.encoder.pose_schema, log_time_ns, data)
 
     def _is_query(self, log_time_ns: int) -> bool:
         """Whether the camera frame at this log time is the query of the last loop written."""
