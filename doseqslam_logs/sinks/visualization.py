@@ -64,6 +64,8 @@ LOOP_LINES_TOPIC = OUR_TOPIC_PREFIX + "loop_lines"
 CURRENT_LOOP = ("doseqslam/match", 0)  # the current loop closure's line: namespace, number
 ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
 CURRENT_POSE_TOPIC = OUR_TOPIC_PREFIX + "current_pose"
+# Annotations drawn on the match image (its inlier keypoints), for the match Image panel.
+MATCH_ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/image_annotations"
 DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
 TRAJECTORY_COLOR = (0.6, 0.6, 0.6, 1.0)
 LOOP_COLOR = (0.1, 0.8, 0.2, 1.0)
