@@ -33,6 +33,7 @@ again from the input, one ranged read, when its query's time comes.
 from __future__ import annotations
 
 import contextlib
+import math
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -46,7 +47,7 @@ from ..annotations.records import OUR_TOPIC_PREFIX, FrameTimes, LoopClosureRecor
 from ..errors import SourceError
 from ..sources import Log, opened
 from ..sources.base import Source
-from ..sources.poses import PoseTrack, default_pose_topic, read_poses, slerp
+from ..sources.poses import PoseTrack, default_pose_topic, read_poses
 from .no_loop_frame import no_loop_message
 from .visual_encoders import (
     LINE_LIST,
@@ -113,14 +114,31 @@ class Trajectory:
 
     def orientation(self, time_ns: int) -> tuple[float, float, float, float]:
         """The orientation (x, y, z, w) at `time_ns`, by slerp (the end poses outside)."""
-        times, quaternions = self.track.times_ns, self.track.quaternions_xyzw
-        upper = int(np.clip(np.searchsorted(times, time_ns), 0, len(times) - 1))
+        times = self.track.times_ns
+        upper = min(int(np.searchsorted(times, time_ns)), len(times) - 1)
         lower = max(upper - 1, 0)
         span = int(times[upper] - times[lower])
         fraction = min(max((time_ns - int(times[lower])) / span, 0.0), 1.0) if span else 1.0
-        q = slerp(quaternions[lower], quaternions[upper], np.float64(fraction))
-        x, y, z, w = (float(v) for v in q)
-        return x, y, z, w
+        q0, q1 = self.track.quaternions_xyzw[lower].tolist(), self.track.quaternions_xyzw[upper]
+        return _slerp(q0, q1.tolist(), fraction)
+
+
+def _slerp(q0: list[float], q1: list[float], fraction: float) -> tuple[float, float, float, float]:
+    """sources.poses.slerp for one pair, in floats: numpy's per-call cost on 4 numbers would
+    be most of a frame's current pose."""
+    cosine = sum(a * b for a, b in zip(q0, q1, strict=True))
+    if cosine < 0:  # the shorter arc
+        q1, cosine = [-b for b in q1], -cosine
+    angle = math.acos(min(cosine, 1.0))
+    if angle < 1e-6:
+        w0, w1 = 1 - fraction, fraction
+    else:
+        w0 = math.sin((1 - fraction) * angle) / math.sin(angle)
+        w1 = math.sin(fraction * angle) / math.sin(angle)
+    q = [w0 * a + w1 * b for a, b in zip(q0, q1, strict=True)]
+    norm = math.sqrt(sum(v * v for v in q))
+    x, y, z, w = (v / norm for v in q)
+    return x, y, z, w
 
 
 @dataclass(frozen=True)
