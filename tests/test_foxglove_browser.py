@@ -48,6 +48,7 @@ OUR_TOPICS = (
     "/doseqslam/markers",
     "/doseqslam/match/marker",
     "/doseqslam/loop_lines",
+    "/doseqslam/current_pose",
 )
 LAYOUT = REPO / "docs" / "foxglove_layout.json"
 # Where the layout screenshot is taken: 108 s of the 119.5 s drive, query frame 216 of a run
@@ -106,6 +107,8 @@ def test_every_output_profile_opens_in_foxglove_with_no_problem(tmp_path: Path) 
 OPTIMIZED_BGR = (255, 0, 255)
 ODOMETRY_BGR = (0, 176, 255)
 PATHS = ("/doseqslam/optimized_path", "/doseqslam/odometry_path")
+# The current pose's arrow (#ffff00 in the layout).
+CURRENT_POSE_BGR = (0, 255, 255)
 
 
 def pixels_of(screenshot: str | Path, bgr: tuple[int, int, int], tolerance: int = 40) -> int:
@@ -115,6 +118,15 @@ def pixels_of(screenshot: str | Path, bgr: tuple[int, int, int], tolerance: int 
     assert image is not None, screenshot
     near = np.abs(image.astype(np.int16) - np.array(bgr, np.int16)) <= tolerance
     return int(np.count_nonzero(near.all(axis=2)))
+
+
+def centre_of(screenshot: str | Path, bgr: tuple[int, int, int], tolerance: int = 40) -> Any:
+    """The mean (x, y) of the screenshot's pixels of the colour `bgr` (as `pixels_of`)."""
+    image = cv2.imread(str(screenshot), cv2.IMREAD_COLOR)
+    assert image is not None, screenshot
+    near = np.abs(image.astype(np.int16) - np.array(bgr, np.int16)) <= tolerance
+    ys, xs = np.nonzero(near.all(axis=2))
+    return np.array([xs.mean(), ys.mean()])
 
 
 def match_panel_pixels(seek: dict[str, Any]) -> np.ndarray[Any, Any]:
@@ -156,7 +168,8 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     """docs/foxglove_layout.json over `optimize` of the ROS 2 output of the `annotate`
     defaults, seeked to a loop closure and then between two: the run drives the viewer; the
     screenshot at the loop closure (docs/images/foxglove_loop_closure.png) is looked at. The
-    annotated log alone, without the paths, has neither path colour."""
+    current pose's arrow is where the robot is at each seek. The annotated log alone, without
+    the paths, has neither path colour."""
     pytest.importorskip("gtsam")
     annotated, output = tmp_path / "ros2.annotated.mcap", tmp_path / "ros2.layout.mcap"
     sample = REPO / "sample_logs" / PROFILES["ros2"]
@@ -185,6 +198,14 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     # shows on both sides of the optimized one).
     assert pixels_of(at_loop["screenshot"], OPTIMIZED_BGR) > 1000
     assert pixels_of(at_loop["screenshot"], ODOMETRY_BGR) > 1000
+    # The current pose's arrow, where the robot is at each seek: it moves between them (the
+    # 108 s and the 72 s frames are on opposite sides of the drive).
+    assert pixels_of(at_loop["screenshot"], CURRENT_POSE_BGR) > 60
+    assert pixels_of(between["screenshot"], CURRENT_POSE_BGR) > 60
+    moved = centre_of(at_loop["screenshot"], CURRENT_POSE_BGR) - centre_of(
+        between["screenshot"], CURRENT_POSE_BGR
+    )
+    assert np.hypot(*moved) > 50, moved
     # The same layout over the annotated log, which has no paths: neither colour.
     without = open_in_layout(annotated, shots, str(LOOP_CLOSURE_AT))
     assert "No problems found" in without["problems"], without

@@ -199,6 +199,12 @@ def test_the_migrated_image_panels_show_the_same_topics(layout: dict[str, Any]) 
 def test_every_topic_of_the_layout_is_in_the_output_with_a_schema_lichtblick_renders(
     layout: dict[str, Any], output_topics: dict[str, str]
 ) -> None:
+    check_topics_render(layout, output_topics)
+
+
+def check_topics_render(layout: dict[str, Any], output_topics: dict[str, str]) -> None:
+    """Every topic the migrated layout names is in `output_topics` with a schema its panel
+    renders, and the 3-D settings are those of that renderable."""
     for panel_id, config in migrated(layout)["configById"].items():
         kind = panel_type(panel_id)
         if kind == "Image":

@@ -43,8 +43,9 @@ REPO = Path(__file__).resolve().parents[1]
 # /doseqslam/candidates, and the LoopClosure schema's comment naming both: the decisions
 # identical); then the visualization channels' "no loop" between loop closures and loop lines
 # as they happen (new messages and the /doseqslam/loop_lines topic, on purpose; the loop
-# closures and sequences the same); the three merged in 7afc61e.
-BYTES_REFERENCE = "7afc61e"
+# closures and sequences the same); the three merged in 7afc61e; then the current pose at each
+# camera frame (a new /doseqslam/current_pose topic, on purpose; the rest the same) in fc03c4a.
+BYTES_REFERENCE = "fc03c4a"
 REFERENCE = BYTES_REFERENCE
 
 

@@ -21,8 +21,9 @@ REPO = Path(__file__).resolve().parents[1]
 # candidates topic (an empty /doseqslam/candidates channel beside the loop closures', and the
 # LoopClosure schema's comment naming both: the decisions identical); then the visualization
 # channels' "no loop" between loop closures and loop lines as they happen (on purpose; the
-# loop closures and sequences the same); the three merged in 7afc61e.
-PAPER_BYTES_REFERENCE = "7afc61e"
+# loop closures and sequences the same); the three merged in 7afc61e; then the current pose at
+# each camera frame (a new /doseqslam/current_pose topic, on purpose) in fc03c4a.
+PAPER_BYTES_REFERENCE = "fc03c4a"
 # The paper's detector (--no-verify) decides the same loop closures and sequences as before
 # the package layout of issue #18: the records compared, not the bytes around them.
 PAPER_REFERENCE = "4c02724"

@@ -34,6 +34,7 @@ TEXTS = "/doseqslam/match/annotations"
 MARKERS = "/doseqslam/markers"
 CURRENT = "/doseqslam/match/marker"
 LOOP_LINES = "/doseqslam/loop_lines"
+CURRENT_POSE = "/doseqslam/current_pose"
 # The first camera frames that are no query, at the start and after each run of loop closures
 # (the "no loop" messages, tests/test_visualization_between_loops.py).
 NO_LOOPS = 12
@@ -231,7 +232,7 @@ def test_a_log_without_poses_gets_images_and_texts_but_no_lines(tmp_path: Path) 
     output = tmp_path / "out.mcap"
     annotate_log(log, output, Parameters(), NO_VERIFY)
     found = channels(output)
-    assert MARKERS not in found and CURRENT not in found
+    assert MARKERS not in found and CURRENT not in found and CURRENT_POSE not in found
     assert found[MATCH][1] == found[TEXTS][1] > 0
 
 
@@ -324,7 +325,7 @@ def test_unreadable_poses_leave_out_the_lines_and_nothing_else(tmp_path: Path) -
     output = tmp_path / "out.mcap"
     annotate_log(log, output, Parameters(), NO_VERIFY)
     found = channels(output)
-    assert MARKERS not in found and CURRENT not in found
+    assert MARKERS not in found and CURRENT not in found and CURRENT_POSE not in found
     assert found[MATCH][1] == found[TEXTS][1] > 0
 
 

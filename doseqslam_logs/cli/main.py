@@ -19,9 +19,9 @@ from types import FrameType
 
 from .. import __version__
 from ..errors import DoseqslamError, ExitCode
-from . import annotate, batch, diff, evaluate, export, info, optimize, to_bag
+from . import annotate, batch, diff, evaluate, export, info, layout, optimize, to_bag
 
-SUBCOMMANDS = (info, annotate, evaluate, diff, batch, export, optimize, to_bag)
+SUBCOMMANDS = (info, annotate, evaluate, diff, batch, export, optimize, layout, to_bag)
 
 
 class Terminated(KeyboardInterrupt):

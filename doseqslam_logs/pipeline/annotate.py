@@ -40,7 +40,7 @@ from ..sinks.mcap_writer import (
 )
 from ..sinks.output_format import OutputFormat
 from ..sinks.ros1_bag import mcap_to_bag
-from ..sinks.visualization import Visualization, read_trajectory, visual_loops
+from ..sinks.visualization import FrameClock, Visualization, read_trajectory, visual_loops
 from ..sources import Log, is_mcap_file, pick_image_topic
 from ..sources.base import Promise, Source
 from ..sources.camera_info import find_camera_info
@@ -279,11 +279,15 @@ def visualization_of(
     topic: str,
     track: PoseTrack | None = None,
     pose_topic: str | None = None,
+    time_source: str = "header",
 ) -> Visualization:
     """What the visualization channels draw for these annotations of the log: the trajectory
-    of `pose_topic`, else of its default pose topic (`track` when the run read it already)."""
+    of `pose_topic`, else of its default pose topic (`track` when the run read it already),
+    and its pose at each frame, timed as the run timed its frames (`time_source`)."""
     loops = visual_loops(annotations.messages)
-    return Visualization(topic, loops, read_trajectory(log, pose_topic, track))
+    times = annotations.frame_times
+    frames = None if times is None else FrameClock.of(times, time_source)
+    return Visualization(topic, loops, read_trajectory(log, pose_topic, track), frames)
 
 
 def _hash_in_background(path: Path) -> Future[str]:
@@ -804,7 +808,12 @@ class _Run:
         if options.visualization and not options.sidecar:
             # The odometry asked for, if any (not "none": the log's default is still drawn).
             drawn = visualization_of(
-                annotations, source, topic, track, options.odometry_topic or None
+                annotations,
+                source,
+                topic,
+                track,
+                options.odometry_topic or None,
+                options.time_source,
             )
             annotations = replace(annotations, visualization=drawn)
         self.observer.started("write")

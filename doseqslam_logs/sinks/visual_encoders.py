@@ -2,7 +2,8 @@
 
 Foxglove and Lichtblick draw a message with no custom panel when its schema is one they know:
 `visualization_msgs/MarkerArray` and `foxglove_msgs/ImageAnnotations` in the ROS profiles,
-`foxglove.SceneUpdate` and `foxglove.ImageAnnotations` (JSON) in every other profile. The
+`foxglove.SceneUpdate` and `foxglove.ImageAnnotations` (JSON) in every other profile; a pose
+is `geometry_msgs/PoseStamped` in the ROS profiles, `foxglove.PoseInFrame` (JSON) otherwise. The
 builders here take the same plain description (lines in a frame, texts on an image) and give
 each profile's schema and bytes. Definitions come from rosbags' type stores
 (visualization_msgs) and from `schemas/` (foxglove_msgs, the JSON schemas).
@@ -24,9 +25,12 @@ from ..annotations.schema_files import read_schema
 from .encoders import RosBuilder
 
 Point3 = tuple[float, float, float]
+Quaternion = tuple[float, float, float, float]  # x, y, z, w
 Rgba = tuple[float, float, float, float]
 FOXGLOVE_MSGS = ("Color", "Point2", "CircleAnnotation", "PointsAnnotation", "TextAnnotation")
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TIME = "builtin_interfaces/msg/Time"
 IMAGE_ANNOTATIONS = "foxglove_msgs/msg/ImageAnnotations"
 LINE_STRIP, LINE_LIST = "strip", "list"
 _ROS_MARKER_TYPES = {LINE_STRIP: 4, LINE_LIST: 5}  # visualization_msgs/Marker
@@ -90,7 +94,14 @@ class VisualEncoder(ABC):
     def annotations_schema(self) -> SchemaInfo: ...
 
     @abstractmethod
+    def pose_schema(self) -> SchemaInfo: ...
+
+    @abstractmethod
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes: ...
+
+    @abstractmethod
+    def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
+        """One pose in a frame, stamped at `time_ns`."""
 
     @abstractmethod
     def deletion(self, frame_id: str, time_ns: int, namespace: str, number: int) -> bytes:
@@ -147,6 +158,28 @@ class _RosVisualEncoder(RosBuilder, VisualEncoder):
 
     def annotations_schema(self) -> SchemaInfo:
         return self._schema(IMAGE_ANNOTATIONS)
+
+    def pose_schema(self) -> SchemaInfo:
+        return self._schema(POSE_STAMPED)
+
+    def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
+        # Built directly, not by the generic builder: this runs at every camera frame, and
+        # walking the definition cost three times what the rest of the pose costs.
+        types: Any = self.typestore.types
+        sec, nanosec = divmod(time_ns, 1_000_000_000)
+        header: dict[str, Any] = {"stamp": types[TIME](sec=sec, nanosec=nanosec)}
+        if self.ros_version == 1:
+            header["seq"] = 0
+        pose = types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](*position),
+            orientation=types["geometry_msgs/msg/Quaternion"](*orientation),
+        )
+        message = types[POSE_STAMPED](
+            header=types["std_msgs/msg/Header"](frame_id=frame_id, **header), pose=pose
+        )
+        if self.ros_version == 2:
+            return bytes(self.typestore.serialize_cdr(message, POSE_STAMPED))
+        return bytes(self.typestore.serialize_ros1(message, POSE_STAMPED))
 
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes:
         markers = [self._marker(frame_id, time_ns, item) for item in lines]
@@ -210,6 +243,13 @@ class JsonVisualEncoder(VisualEncoder):
     def annotations_schema(self) -> SchemaInfo:
         return self._schema("foxglove.ImageAnnotations")
 
+    def pose_schema(self) -> SchemaInfo:
+        return self._schema("foxglove.PoseInFrame")
+
+    def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
+        pose = _pose(position, orientation)
+        return _json({"timestamp": time_dict(time_ns), "frame_id": frame_id, "pose": pose})
+
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes:
         entities = [_entity(frame_id, time_ns, item) for item in lines]
         return _json({"deletions": [], "entities": entities})
@@ -259,6 +299,11 @@ def _entity(frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
 
 def _xyz(point: Sequence[float]) -> dict[str, float]:
     return dict(zip("xyz", (float(v) for v in point), strict=True))
+
+
+def _pose(position: Point3, orientation: Quaternion) -> dict[str, dict[str, float]]:
+    xyzw = dict(zip("xyzw", (float(v) for v in orientation), strict=True))
+    return {"position": _xyz(position), "orientation": xyzw}
 
 
 def _annotations(time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> dict[str, Any]:

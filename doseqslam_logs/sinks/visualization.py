@@ -10,9 +10,11 @@ For each reported loop closure, at the query image's log time:
   (`/doseqslam/loop_lines`, one message replacing the previous; past EVERY_LOOP_LINES loop
   closures, only as they grow by LOOP_LINES_GROWTH, so that the bytes stay linear).
 With a pose topic, `/doseqslam/markers` holds the whole trajectory, written once, at the log's
-first message. A viewer seeking anywhere shows the latest message of each topic: the
-trajectory, the loop lines up to then and the current loop closure, wherever one scrubs (a
-scene built up message by message would show only its last line after a seek).
+first message, and `/doseqslam/current_pose` the trajectory's pose at each camera frame (at its
+log time, interpolated at the frame's time): Foxglove's 3-D panel draws no nav_msgs/Odometry,
+so this arrow is where the robot is. A viewer seeking anywhere shows the latest message of
+each topic: the trajectory, the loop lines up to then and the current loop closure, wherever
+one scrubs (a scene built up message by message would show only its last line after a seek).
 
 Between loop closures those topics would go on showing the last one, so the first camera frame
 that is not a query, after each loop closure and at the log's start, has its own messages: a
@@ -32,15 +34,17 @@ again from the input, one ranged read, when its query's time comes.
 from __future__ import annotations
 
 import contextlib
+import math
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from mcap.writer import Writer
 
-from ..annotations.records import OUR_TOPIC_PREFIX, LoopClosureRecord, TimedMessage
+from ..annotations.records import OUR_TOPIC_PREFIX, FrameTimes, LoopClosureRecord, TimedMessage
 from ..errors import SourceError
 from ..sources import Log, opened
 from ..sources.base import Source
@@ -65,6 +69,9 @@ EVERY_LOOP_LINES = 256
 LOOP_LINES_GROWTH = 1 / 16
 CURRENT_LOOP = ("doseqslam/match", 0)  # the current loop closure's line: namespace, number
 ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
+CURRENT_POSE_TOPIC = OUR_TOPIC_PREFIX + "current_pose"
+# Annotations drawn on the match image (its inlier keypoints), for the match Image panel.
+MATCH_ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/image_annotations"
 DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
 TRAJECTORY_COLOR = (0.6, 0.6, 0.6, 1.0)
 LOOP_COLOR = (0.1, 0.8, 0.2, 1.0)
@@ -110,6 +117,57 @@ class Trajectory:
         x, y, z = (float(np.interp(time_ns, times, positions[:, k])) for k in range(3))
         return x, y, z
 
+    def orientation(self, time_ns: int) -> tuple[float, float, float, float]:
+        """The orientation (x, y, z, w) at `time_ns`, by slerp (the end poses outside)."""
+        times = self.track.times_ns
+        upper = min(int(np.searchsorted(times, time_ns)), len(times) - 1)
+        lower = max(upper - 1, 0)
+        span = int(times[upper] - times[lower])
+        fraction = min(max((time_ns - int(times[lower])) / span, 0.0), 1.0) if span else 1.0
+        q0, q1 = self.track.quaternions_xyzw[lower].tolist(), self.track.quaternions_xyzw[upper]
+        return _slerp(q0, q1.tolist(), fraction)
+
+
+def _slerp(q0: list[float], q1: list[float], fraction: float) -> tuple[float, float, float, float]:
+    """sources.poses.slerp for one pair, in floats: numpy's per-call cost on 4 numbers would
+    be most of a frame's current pose."""
+    cosine = sum(a * b for a, b in zip(q0, q1, strict=True))
+    if cosine < 0:  # the shorter arc
+        q1, cosine = [-b for b in q1], -cosine
+    angle = math.acos(min(cosine, 1.0))
+    if angle < 1e-6:
+        w0, w1 = 1 - fraction, fraction
+    else:
+        w0 = math.sin((1 - fraction) * angle) / math.sin(angle)
+        w1 = math.sin(fraction * angle) / math.sin(angle)
+    q = [w0 * a + w1 * b for a, b in zip(q0, q1, strict=True)]
+    norm = math.sqrt(sum(v * v for v in q))
+    x, y, z, w = (v / norm for v in q)
+    return x, y, z, w
+
+
+@dataclass(frozen=True)
+class FrameClock:
+    """The camera frames by log time, and the time each was given (its header stamp, or its
+    log time): what a frame's current pose is interpolated at."""
+
+    log_times_ns: npt.NDArray[np.int64]  # ascending
+    times_ns: npt.NDArray[np.int64]
+
+    @classmethod
+    def of(cls, frame_times: FrameTimes, time_source: str) -> FrameClock:
+        order = np.argsort(frame_times.log_times_ns, kind="stable")
+        times = frame_times.detector_times_ns(time_source)
+        return cls(frame_times.log_times_ns[order], times[order])
+
+    def time_at(self, log_time_ns: int) -> int | None:
+        """The time of the frame logged at `log_time_ns`; None for a camera message that is
+        no frame of the run (skipped, or outside the time range asked for)."""
+        k = int(np.searchsorted(self.log_times_ns, log_time_ns))
+        if k < len(self.log_times_ns) and int(self.log_times_ns[k]) == log_time_ns:
+            return int(self.times_ns[k])
+        return None
+
 
 @dataclass(frozen=True)
 class Visualization:
@@ -118,6 +176,7 @@ class Visualization:
     camera_topic: str
     loops: Sequence[VisualLoop]  # in query log-time order
     trajectory: Trajectory | None
+    frames: FrameClock | None = None  # None: no current pose
 
 
 def caption(record: LoopClosureRecord) -> str:
@@ -202,6 +261,7 @@ class VisualWriter:
         self._no_loop_annotations = encoder.annotations(0, [], [])
         self._no_loop_image: bytes | None = None
         self._no_loop_tries = 0
+        self._last_pose_log_time: int | None = None
 
     def input_channel(
         self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]
@@ -215,6 +275,7 @@ class VisualWriter:
         if topic != self.plan.camera_topic:
             return
         self._kept.offer(log_time_ns, data)
+        self._write_current_pose(log_time_ns)
         if self._no_loop_due and not self._is_query(log_time_ns):
             self._no_loop_due = False
             self._write_no_loop(log_time_ns, data)
@@ -275,6 +336,19 @@ class VisualWriter:
         so_far = Lines("doseqslam/loop_closures", 0, LINE_LIST, self._loop_ends, LOOP_COLOR, 0.08)
         data = self.encoder.scene(trajectory.frame_id, time, [so_far])
         self._add(LOOP_LINES_TOPIC, self.encoder.scene_schema, time, data)
+
+    def _write_current_pose(self, log_time_ns: int) -> None:
+        """The trajectory's pose at the camera frame logged at this time, once per log time."""
+        trajectory, frames = self.plan.trajectory, self.plan.frames
+        if trajectory is None or frames is None or log_time_ns == self._last_pose_log_time:
+            return
+        time_ns = frames.time_at(log_time_ns)
+        if time_ns is None:
+            return
+        self._last_pose_log_time = log_time_ns
+        position, orientation = trajectory.position(time_ns), trajectory.orientation(time_ns)
+        data = self.encoder.pose(trajectory.frame_id, time_ns, position, orientation)
+        self._add(CURRENT_POSE_TOPIC, self.encoder.pose_schema, log_time_ns, data)
 
     def _is_query(self, log_time_ns: int) -> bool:
         """Whether the camera frame at this log time is the query of the last loop written."""
