@@ -54,6 +54,7 @@ from ..sources.poses import PoseTrack, run_pose_topic
 from ..sources.salvage import SalvageReport, salvage_mcap
 from ..verification import (
     DEFAULT_VERIFICATION,
+    InlierPoints,
     Intrinsics,
     VerificationParameters,
     VerificationStats,
@@ -279,11 +280,27 @@ def visualization_of(
     topic: str,
     track: PoseTrack | None = None,
     pose_topic: str | None = None,
+    verification: Verification | None = None,
 ) -> Visualization:
     """What the visualization channels draw for these annotations of the log: the trajectory
-    of `pose_topic`, else of its default pose topic (`track` when the run read it already)."""
-    loops = visual_loops(annotations.messages)
-    return Visualization(topic, loops, read_trajectory(log, pose_topic, track))
+    of `pose_topic`, else of its default pose topic (`track` when the run read it already),
+    and the inlier points of the pairs `verification` accepted."""
+    loops = visual_loops(annotations.messages, inlier_points(verification))
+    trajectory = read_trajectory(log, pose_topic, track)
+    return Visualization(topic, loops, trajectory, verified=verification is not None)
+
+
+def inlier_points(verification: Verification | None) -> dict[tuple[int, int], InlierPoints]:
+    """The accepted pairs' inlier points (the verification keeps none for the others) by
+    (query, refined match) frame index: at most MAX_INLIER_POINTS a reported pair."""
+    if verification is None:
+        return {}
+    return {
+        (check.candidate.query_index, check.refined_match_index): check.verdict.inlier_points
+        for verified in verification.decisions.values()
+        for check in verified.checks
+        if check.accepted and check.verdict.inlier_points is not None
+    }
 
 
 def _hash_in_background(path: Path) -> Future[str]:
@@ -629,7 +646,7 @@ class _Run:
         frames = odometry.frames
         track = replayed.side.pose_track() if frames is None else frames.track
         try:
-            written = self.write(annotations, replayed.topic, track)
+            written = self.write(annotations, replayed.topic, track, verification)
         finally:
             annotations.close()
         log = self.log
@@ -798,14 +815,19 @@ class _Run:
         self.observer.finished("annotations", annotations)
         return annotations, health
 
-    def write(self, annotations: Annotations, topic: str, track: PoseTrack | None) -> WriteSummary:
+    def write(
+        self,
+        annotations: Annotations,
+        topic: str,
+        track: PoseTrack | None,
+        verification: Verification | None = None,
+    ) -> WriteSummary:
         """The write stage: the visualization channels drawn, then the output written."""
         options, source = self.options, self.log.source
         if options.visualization and not options.sidecar:
             # The odometry asked for, if any (not "none": the log's default is still drawn).
-            drawn = visualization_of(
-                annotations, source, topic, track, options.odometry_topic or None
-            )
+            pose_topic = options.odometry_topic or None
+            drawn = visualization_of(annotations, source, topic, track, pose_topic, verification)
             annotations = replace(annotations, visualization=drawn)
         self.observer.started("write")
         total = sum(c.message_count for c in source.channels())
