@@ -74,7 +74,7 @@ TEXT_COLOR = (1.0, 1.0, 1.0, 1.0)
 TEXT_BACKGROUND = (0.0, 0.0, 0.0, 0.6)
 # The inlier keypoints: yellow, which neither the loop's green nor a 3-D path colour is.
 INLIER_COLOR = (1.0, 1.0, 0.0, 1.0)
-INLIER_RADIUS_PX = 2.0
+INLIER_RADIUS_PX = 1.5
 # The match images kept from the copy at most (bytes); beyond it a match is read again.
 KEPT_MATCHES_BYTES = 64 * 1024 * 1024
 # Camera messages tried for the "no loop" frame (a damaged one is not understood) at most.
