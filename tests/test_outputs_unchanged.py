@@ -43,8 +43,11 @@ REPO = Path(__file__).resolve().parents[1]
 # /doseqslam/candidates, and the LoopClosure schema's comment naming both: the decisions
 # identical); then the visualization channels' "no loop" between loop closures and loop lines
 # as they happen (new messages and the /doseqslam/loop_lines topic, on purpose; the loop
-# closures and sequences the same); the three merged in 7afc61e.
-BYTES_REFERENCE = "7afc61e"
+# closures and sequences the same); the three merged in 7afc61e; then the inlier keypoints
+# drawn on both images at each loop closure (a POINTS annotation on the query's, the new
+# /doseqslam/match/image_annotations topic for the match's, on purpose; the loop closures and
+# sequences the same), in 01f4a31.
+BYTES_REFERENCE = "01f4a31"
 REFERENCE = BYTES_REFERENCE
 
 
