@@ -106,37 +106,59 @@ def test_every_output_profile_opens_in_foxglove_with_no_problem(tmp_path: Path) 
 # the screenshot holds them (BGR): nothing else in the picture has either hue.
 OPTIMIZED_BGR = (255, 0, 255)
 ODOMETRY_BGR = (0, 176, 255)
+# The inlier keypoints' colour (sinks.visualization.INLIER_COLOR, yellow), which the sample's
+# camera images never have (their colours are far from saturated).
+INLIERS_BGR = (0, 255, 255)
+MATCH_ANNOTATIONS = "/doseqslam/match/image_annotations"
 PATHS = ("/doseqslam/optimized_path", "/doseqslam/odometry_path")
-# The current pose's arrow (#ffff00 in the layout).
-CURRENT_POSE_BGR = (0, 255, 255)
+# The current pose's arrow (#8000ff in the layout).
+CURRENT_POSE_BGR = (255, 0, 128)
 
 
-def pixels_of(screenshot: str | Path, bgr: tuple[int, int, int], tolerance: int = 40) -> int:
-    """How many pixels of the screenshot have the colour `bgr`, give or take `tolerance` per
-    channel (antialiased edges blend with the background)."""
-    image = cv2.imread(str(screenshot), cv2.IMREAD_COLOR)
-    assert image is not None, screenshot
+def pixels_of(
+    screenshot: str | Path | np.ndarray[Any, Any], bgr: tuple[int, int, int], tolerance: int = 40
+) -> int:
+    """How many pixels of the screenshot (a file, or pixels of one) have the colour `bgr`,
+    give or take `tolerance` per channel (antialiased edges blend with the background)."""
+    image = screenshot
+    if not isinstance(image, np.ndarray):
+        image = cv2.imread(str(screenshot), cv2.IMREAD_COLOR)
+        assert image is not None, screenshot
     near = np.abs(image.astype(np.int16) - np.array(bgr, np.int16)) <= tolerance
     return int(np.count_nonzero(near.all(axis=2)))
 
 
-def centre_of(screenshot: str | Path, bgr: tuple[int, int, int], tolerance: int = 40) -> Any:
-    """The mean (x, y) of the screenshot's pixels of the colour `bgr` (as `pixels_of`)."""
-    image = cv2.imread(str(screenshot), cv2.IMREAD_COLOR)
-    assert image is not None, screenshot
-    near = np.abs(image.astype(np.int16) - np.array(bgr, np.int16)) <= tolerance
+def centre_of(pixels: np.ndarray[Any, Any], bgr: tuple[int, int, int], tolerance: int = 40) -> Any:
+    """The mean (x, y) of the pixels of the colour `bgr` (as `pixels_of`)."""
+    near = np.abs(pixels.astype(np.int16) - np.array(bgr, np.int16)) <= tolerance
     ys, xs = np.nonzero(near.all(axis=2))
     return np.array([xs.mean(), ys.mean()])
 
 
-def match_panel_pixels(seek: dict[str, Any]) -> np.ndarray[Any, Any]:
-    """The screenshot's pixels of the match Image panel: the top row's right canvas."""
+def image_panel_pixels(seek: dict[str, Any], side: str = "match") -> np.ndarray[Any, Any]:
+    """The screenshot's pixels of an Image panel: the top row's right canvas for the match,
+    its left one for the query."""
     top = min(canvas["y"] for canvas in seek["canvases"])
-    panel = max((c for c in seek["canvases"] if c["y"] == top), key=lambda c: c["x"])
+    row = [c for c in seek["canvases"] if c["y"] == top]
+    panel = max(row, key=lambda c: c["x"]) if side == "match" else min(row, key=lambda c: c["x"])
     x, y, width, height = (round(panel[k]) for k in ("x", "y", "width", "height"))
     screenshot = cv2.imread(seek["screenshot"])
     assert screenshot is not None, seek
     return np.asarray(screenshot[y : y + height, x : x + width])
+
+
+def match_panel_pixels(seek: dict[str, Any]) -> np.ndarray[Any, Any]:
+    return image_panel_pixels(seek, "match")
+
+
+def below_image_panels(seek: dict[str, Any]) -> np.ndarray[Any, Any]:
+    """The screenshot's pixels below the Image panels: the 3-D and Raw Messages panels (the
+    images' keypoints, antialiased, blend into a few pixels of the paths' colours)."""
+    top = min(canvas["y"] for canvas in seek["canvases"])
+    bottom = max(round(c["y"] + c["height"]) for c in seek["canvases"] if c["y"] == top)
+    screenshot = cv2.imread(seek["screenshot"])
+    assert screenshot is not None, seek
+    return np.asarray(screenshot[bottom:])
 
 
 def shows_no_loop(panel: np.ndarray[Any, Any]) -> bool:
@@ -178,8 +200,10 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
     shots.mkdir(parents=True, exist_ok=True)
     result = open_in_layout(output, shots, f"{LOOP_CLOSURE_AT},{BETWEEN_LOOPS_AT}")
-    # With verification the pairs it did not accept are on a topic of their own.
-    assert {*OUR_TOPICS, *PATHS, "/doseqslam/candidates"} <= set(result["topics"]), result
+    # With verification the pairs it did not accept are on a topic of their own, and the match
+    # image has annotations of its own.
+    ours = {*OUR_TOPICS, *PATHS, "/doseqslam/candidates", MATCH_ANNOTATIONS}
+    assert ours <= set(result["topics"]), result
     assert "No problems found" in result["problems"], result
     assert result["errors"] == [], result
     # The layout's panels are known (an unknown type says "Unknown panel type") and have data.
@@ -193,22 +217,25 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     # closures the grey "no loop" frame, not the last match.
     assert not shows_no_loop(match_panel_pixels(at_loop)), at_loop
     assert shows_no_loop(match_panel_pixels(between)), between
+    # The inlier keypoints, in their colour, on both images at the loop closure (a point is a
+    # dot of a dozen pixels or more at this zoom, and the pair has dozens), none between.
+    for side in ("query", "match"):
+        assert pixels_of(image_panel_pixels(at_loop, side), INLIERS_BGR) > 300, (side, at_loop)
+        assert pixels_of(image_panel_pixels(between, side), INLIERS_BGR) < 20, (side, between)
     # The 3-D panel draws both paths, each in its colour: a line of the trajectory's length
     # (the drive spans about 20 m: each line covers thousands of pixels, the odometry, wider,
     # shows on both sides of the optimized one).
-    assert pixels_of(at_loop["screenshot"], OPTIMIZED_BGR) > 1000
-    assert pixels_of(at_loop["screenshot"], ODOMETRY_BGR) > 1000
+    assert pixels_of(below_image_panels(at_loop), OPTIMIZED_BGR) > 1000
+    assert pixels_of(below_image_panels(at_loop), ODOMETRY_BGR) > 1000
     # The current pose's arrow, where the robot is at each seek: it moves between them (the
     # 108 s and the 72 s frames are on opposite sides of the drive).
-    assert pixels_of(at_loop["screenshot"], CURRENT_POSE_BGR) > 60
-    assert pixels_of(between["screenshot"], CURRENT_POSE_BGR) > 60
-    moved = centre_of(at_loop["screenshot"], CURRENT_POSE_BGR) - centre_of(
-        between["screenshot"], CURRENT_POSE_BGR
-    )
+    here, there = below_image_panels(at_loop), below_image_panels(between)
+    assert pixels_of(here, CURRENT_POSE_BGR) > 60 and pixels_of(there, CURRENT_POSE_BGR) > 60
+    moved = centre_of(here, CURRENT_POSE_BGR) - centre_of(there, CURRENT_POSE_BGR)
     assert np.hypot(*moved) > 50, moved
     # The same layout over the annotated log, which has no paths: neither colour.
     without = open_in_layout(annotated, shots, str(LOOP_CLOSURE_AT))
     assert "No problems found" in without["problems"], without
     [plain] = without["seeks"]
-    assert pixels_of(plain["screenshot"], OPTIMIZED_BGR) < 50
-    assert pixels_of(plain["screenshot"], ODOMETRY_BGR) < 50
+    assert pixels_of(below_image_panels(plain), OPTIMIZED_BGR) < 50
+    assert pixels_of(below_image_panels(plain), ODOMETRY_BGR) < 50

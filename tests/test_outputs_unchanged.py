@@ -44,8 +44,11 @@ REPO = Path(__file__).resolve().parents[1]
 # identical); then the visualization channels' "no loop" between loop closures and loop lines
 # as they happen (new messages and the /doseqslam/loop_lines topic, on purpose; the loop
 # closures and sequences the same); the three merged in 7afc61e; then the current pose at each
-# camera frame (a new /doseqslam/current_pose topic, on purpose; the rest the same) in fc03c4a.
-BYTES_REFERENCE = "fc03c4a"
+# camera frame (a new /doseqslam/current_pose topic, on purpose; the rest the same) in fc03c4a;
+# then the inlier keypoints drawn on both images at each loop closure (a POINTS annotation on
+# the query's, the new /doseqslam/match/image_annotations topic for the match's, on purpose;
+# the loop closures and sequences the same), the two merged in MERGE.
+BYTES_REFERENCE = "MERGE"
 REFERENCE = BYTES_REFERENCE
 
 

@@ -31,6 +31,7 @@ from doseqslam_logs.verification import (
     refine_match,
     verify_pair,
 )
+from doseqslam_logs.verification.geometry import MAX_INLIER_POINTS
 
 P = DEFAULT_VERIFICATION
 RTABMAP = "rtabmap_samples_loop"
@@ -352,6 +353,11 @@ def test_verdict_invariants_on_arbitrary_features(
     assert verdict.model == ("E" if with_intrinsics else "F")
     if not (with_intrinsics and verdict.accepted):
         assert verdict.rotation_xyzw is None and verdict.translation_direction is None
+    # The inliers' points on the accepted verdicts only, capped.
+    points = verdict.inlier_points
+    assert (points is not None) == verdict.accepted
+    if points is not None:
+        assert points.count == points.match.shape[0] == min(verdict.inliers, MAX_INLIER_POINTS)
     assert verdict == verify_pair(query, match, params, intrinsics)
 
 
@@ -429,6 +435,35 @@ def test_relative_pose_from_the_essential_matrix() -> None:
     limited = verify_pair(query, match, P.replace(max_rotation_deg=5.0), intrinsics)
     assert not limited.accepted and limited.reason == "rotation over 5 deg"
     assert limited.inliers == verdict.inliers and limited.rotation_deg == verdict.rotation_deg
+    assert limited.inlier_points is None  # drawn for reported pairs only
+
+
+def test_inlier_points_are_in_the_frames_own_pixels_on_the_true_geometry() -> None:
+    """Frames of 640 x 480 are shrunk to 320 for features: the accepted verdict's inlier
+    points, every one (up to the cap), lie on the true epipolar lines in original pixels."""
+    true_rotation, true_translation = _rotation_y(10.0), np.array([-0.6, 0.05, 0.15])
+    first, second = _render(np.eye(3), np.zeros(3)), _render(true_rotation, true_translation)
+    query, match = extract_features(first, P), extract_features(second, P)
+    assert query.scale == match.scale == 0.5
+    intrinsics = Intrinsics(FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2)
+    tx, ty, tz = true_translation
+    essential = np.array([[0, -tz, ty], [tz, 0, -tx], [-ty, tx, 0]]) @ true_rotation
+    k_inv = np.linalg.inv(K)
+    fundamental = k_inv.T @ essential @ k_inv
+    for verdict in (
+        verify_pair(query, match, P.replace(max_rotation_deg=30.0), intrinsics),
+        verify_pair(query, match, P),  # the fundamental matrix's inliers
+    ):
+        points = verdict.inlier_points
+        assert verdict.accepted and points is not None
+        assert points.count == min(verdict.inliers, MAX_INLIER_POINTS) > 30
+        q = np.column_stack([points.query, np.ones(points.count)])
+        m = np.column_stack([points.match, np.ones(points.count)])
+        lines = q @ fundamental.T
+        distances = np.abs((m * lines).sum(axis=1)) / np.hypot(lines[:, 0], lines[:, 1])
+        assert np.median(distances) < 1.0 and np.percentile(distances, 90) < 3.0
+        for xy in (points.query, points.match):
+            assert (xy >= 0).all() and (xy[:, 0] < WIDTH).all() and (xy[:, 1] < HEIGHT).all()
 
 
 # -- parameters ---------------------------------------------------------------------------

@@ -50,7 +50,7 @@ TOPIC_SETTINGS: dict[str, dict[str, Any]] = {
         **SHOWN, "type": "line", "lineWidth": 0.2, "gradient": ["#ff00ff", "#ff00ff"],
     },
     CURRENT_POSE_TOPIC: {
-        **SHOWN, "type": "arrow", "arrowScale": [2.0, 0.5, 0.5], "color": "#ffff00",
+        **SHOWN, "type": "arrow", "arrowScale": [2.0, 0.5, 0.5], "color": "#8000ff",
     },
 }  # fmt: skip
 GROUND_TRUTH = {**SHOWN, "type": "arrow", "arrowScale": [1.5, 0.3, 0.3], "color": "#00e0ff"}

@@ -54,6 +54,7 @@ from ..sources.poses import PoseTrack, run_pose_topic
 from ..sources.salvage import SalvageReport, salvage_mcap
 from ..verification import (
     DEFAULT_VERIFICATION,
+    InlierPoints,
     Intrinsics,
     VerificationParameters,
     VerificationStats,
@@ -280,14 +281,30 @@ def visualization_of(
     track: PoseTrack | None = None,
     pose_topic: str | None = None,
     time_source: str = "header",
+    verification: Verification | None = None,
 ) -> Visualization:
     """What the visualization channels draw for these annotations of the log: the trajectory
     of `pose_topic`, else of its default pose topic (`track` when the run read it already),
-    and its pose at each frame, timed as the run timed its frames (`time_source`)."""
-    loops = visual_loops(annotations.messages)
+    its pose at each frame, timed as the run timed its frames (`time_source`), and the inlier
+    points of the pairs `verification` accepted."""
+    loops = visual_loops(annotations.messages, inlier_points(verification))
+    trajectory = read_trajectory(log, pose_topic, track)
     times = annotations.frame_times
     frames = None if times is None else FrameClock.of(times, time_source)
-    return Visualization(topic, loops, read_trajectory(log, pose_topic, track), frames)
+    return Visualization(topic, loops, trajectory, frames, verified=verification is not None)
+
+
+def inlier_points(verification: Verification | None) -> dict[tuple[int, int], InlierPoints]:
+    """The accepted pairs' inlier points (the verification keeps none for the others) by
+    (query, refined match) frame index: at most MAX_INLIER_POINTS a reported pair."""
+    if verification is None:
+        return {}
+    return {
+        (check.candidate.query_index, check.refined_match_index): check.verdict.inlier_points
+        for verified in verification.decisions.values()
+        for check in verified.checks
+        if check.accepted and check.verdict.inlier_points is not None
+    }
 
 
 def _hash_in_background(path: Path) -> Future[str]:
@@ -633,7 +650,7 @@ class _Run:
         frames = odometry.frames
         track = replayed.side.pose_track() if frames is None else frames.track
         try:
-            written = self.write(annotations, replayed.topic, track)
+            written = self.write(annotations, replayed.topic, track, verification)
         finally:
             annotations.close()
         log = self.log
@@ -802,7 +819,13 @@ class _Run:
         self.observer.finished("annotations", annotations)
         return annotations, health
 
-    def write(self, annotations: Annotations, topic: str, track: PoseTrack | None) -> WriteSummary:
+    def write(
+        self,
+        annotations: Annotations,
+        topic: str,
+        track: PoseTrack | None,
+        verification: Verification | None = None,
+    ) -> WriteSummary:
         """The write stage: the visualization channels drawn, then the output written."""
         options, source = self.options, self.log.source
         if options.visualization and not options.sidecar:
@@ -814,6 +837,7 @@ class _Run:
                 track,
                 options.odometry_topic or None,
                 options.time_source,
+                verification,
             )
             annotations = replace(annotations, visualization=drawn)
         self.observer.started("write")

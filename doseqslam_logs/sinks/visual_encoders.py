@@ -37,7 +37,7 @@ _ROS_MARKER_TYPES = {LINE_STRIP: 4, LINE_LIST: 5}  # visualization_msgs/Marker
 _SCENE_LINE_TYPES = {LINE_STRIP: 0, LINE_LIST: 2}  # foxglove.LinePrimitive
 _ROS_MARKER_DELETE = 2  # visualization_msgs/Marker action
 _SCENE_MATCHING_ID = 0  # foxglove.SceneEntityDeletion type
-LINE_LOOP_POINTS = 2  # foxglove PointsAnnotation type
+POINTS, LINE_LOOP_POINTS = 1, 2  # foxglove PointsAnnotation types
 
 
 @dataclass(frozen=True)
@@ -75,6 +75,16 @@ class Badge:
 
 
 @dataclass(frozen=True)
+class Dots:
+    """Points on an image, each a filled dot of radius `size` pixels; (x, y) from the image's
+    top left corner (the top left pixel's centre is (0.5, 0.5))."""
+
+    points: Sequence[tuple[float, float]]
+    color: Rgba
+    size: float
+
+
+@dataclass(frozen=True)
 class SchemaInfo:
     name: str
     encoding: str
@@ -108,8 +118,15 @@ class VisualEncoder(ABC):
         """A scene message that removes the drawing named (namespace, number) of its topic."""
 
     @abstractmethod
-    def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
-        """foxglove ImageAnnotations: texts, and badges as filled LINE_LOOP points."""
+    def annotations(
+        self,
+        time_ns: int,
+        texts: Sequence[Text],
+        badges: Sequence[Badge],
+        dots: Sequence[Dots] = (),
+    ) -> bytes:
+        """foxglove ImageAnnotations: texts, badges as filled LINE_LOOP points, and dots as
+        POINTS."""
 
 
 class _RosVisualEncoder(RosBuilder, VisualEncoder):
@@ -207,8 +224,14 @@ class _RosVisualEncoder(RosBuilder, VisualEncoder):
         marker["points"] = [dict(zip("xyz", p, strict=True)) for p in lines.points]
         return marker
 
-    def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
-        return self._serialize(IMAGE_ANNOTATIONS, _annotations(time_ns, texts, badges))
+    def annotations(
+        self,
+        time_ns: int,
+        texts: Sequence[Text],
+        badges: Sequence[Badge],
+        dots: Sequence[Dots] = (),
+    ) -> bytes:
+        return self._serialize(IMAGE_ANNOTATIONS, _annotations(time_ns, texts, badges, dots))
 
     def _serialize(self, typename: str, message: dict[str, Any]) -> bytes:
         built = self.build(typename, message)
@@ -263,8 +286,14 @@ class JsonVisualEncoder(VisualEncoder):
         }
         return _json({"deletions": [deletion], "entities": []})
 
-    def annotations(self, time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> bytes:
-        return _json(_annotations(time_ns, texts, badges))
+    def annotations(
+        self,
+        time_ns: int,
+        texts: Sequence[Text],
+        badges: Sequence[Badge],
+        dots: Sequence[Dots] = (),
+    ) -> bytes:
+        return _json(_annotations(time_ns, texts, badges, dots))
 
 
 def _entity_id(namespace: str, number: int) -> str:
@@ -306,9 +335,26 @@ def _pose(position: Point3, orientation: Quaternion) -> dict[str, dict[str, floa
     return {"position": _xyz(position), "orientation": xyzw}
 
 
-def _annotations(time_ns: int, texts: Sequence[Text], badges: Sequence[Badge]) -> dict[str, Any]:
+def _annotations(
+    time_ns: int, texts: Sequence[Text], badges: Sequence[Badge], dots: Sequence[Dots]
+) -> dict[str, Any]:
     points = [_badge(time_ns, badge) for badge in badges]
+    points += [_dots(time_ns, item) for item in dots if item.points]
     return {"circles": [], "points": points, "texts": [_text(time_ns, t) for t in texts]}
+
+
+def _dots(time_ns: int, dots: Dots) -> dict[str, Any]:
+    # POINTS are painted in outline_color (Foxglove falls back to fill_color): both set.
+    color = dict(zip("rgba", dots.color, strict=True))
+    return {
+        "timestamp": time_dict(time_ns),
+        "type": POINTS,
+        "points": [{"x": x, "y": y} for x, y in dots.points],
+        "outline_color": color,
+        "outline_colors": [],
+        "fill_color": color,
+        "thickness": dots.size,  # a point's radius in image pixels (Foxglove's Image panel)
+    }
 
 
 def _badge(time_ns: int, badge: Badge) -> dict[str, Any]:

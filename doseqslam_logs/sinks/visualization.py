@@ -4,7 +4,8 @@ For each reported loop closure, at the query image's log time:
 - the matched frame's image message, its bytes unchanged, on `match_topic(camera topic)` (same
   schema as the camera topic): two Image panels show query and match side by side;
 - a text on the query image (`/doseqslam/match/annotations`) naming the match, its time and
-  the verification result;
+  the verification result, and with verification the inlier keypoints of the pair's accepted
+  check on it; their matches on the match image on `/doseqslam/match/image_annotations`;
 - with a pose topic, the line from the query's to the match's position, highlighted
   (`/doseqslam/match/marker`), and every reported loop closure's line so far
   (`/doseqslam/loop_lines`, one message replacing the previous; past EVERY_LOOP_LINES loop
@@ -19,9 +20,9 @@ one scrubs (a scene built up message by message would show only its last line af
 Between loop closures those topics would go on showing the last one, so the first camera frame
 that is not a query, after each loop closure and at the log's start, has its own messages: a
 grey "no loop" frame on the match topic (`no_loop_frame`, made once per run), an empty
-ImageAnnotations, and the current loop closure's line deleted. One message there is enough for
-a viewer keeping the latest message, whether it plays or seeks; at every such frame would add
-a message per camera frame for the same picture.
+ImageAnnotations on each annotations topic, and the current loop closure's line deleted. One
+message there is enough for a viewer keeping the latest message, whether it plays or seeks; at
+every such frame would add a message per camera frame for the same picture.
 
 The match is older than the query, so the copy has already written both the camera channel
 whose schema the match images reuse and the match's own message: the writer keeps the camera
@@ -36,9 +37,9 @@ from __future__ import annotations
 import contextlib
 import math
 from collections import Counter
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -54,6 +55,7 @@ from .visual_encoders import (
     LINE_LIST,
     LINE_STRIP,
     Badge,
+    Dots,
     Lines,
     SchemaInfo,
     Text,
@@ -70,7 +72,7 @@ LOOP_LINES_GROWTH = 1 / 16
 CURRENT_LOOP = ("doseqslam/match", 0)  # the current loop closure's line: namespace, number
 ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/annotations"
 CURRENT_POSE_TOPIC = OUR_TOPIC_PREFIX + "current_pose"
-# Annotations drawn on the match image (its inlier keypoints), for the match Image panel.
+# The match image's annotations (its inlier keypoints), with verification only.
 MATCH_ANNOTATIONS_TOPIC = OUR_TOPIC_PREFIX + "match/image_annotations"
 DEFAULT_FRAME_ID = "map"  # for poses without a frame_id
 TRAJECTORY_COLOR = (0.6, 0.6, 0.6, 1.0)
@@ -79,6 +81,9 @@ CURRENT_LOOP_COLOR = (1.0, 0.3, 0.1, 1.0)
 BADGE_PX = 20.0  # the square drawn on the query image (Foxglove 1.48 draws no texts)
 TEXT_COLOR = (1.0, 1.0, 1.0, 1.0)
 TEXT_BACKGROUND = (0.0, 0.0, 0.0, 0.6)
+# The inlier keypoints: yellow, which neither the loop's green nor a 3-D path colour is.
+INLIER_COLOR = (1.0, 1.0, 0.0, 1.0)
+INLIER_RADIUS_PX = 1.5
 # The match images kept from the copy at most (bytes); beyond it a match is read again.
 KEPT_MATCHES_BYTES = 64 * 1024 * 1024
 # Camera messages tried for the "no loop" frame (a damaged one is not understood) at most.
@@ -92,15 +97,29 @@ def match_topic(camera_topic: str) -> str:
     return OUR_TOPIC_PREFIX + "match" + suffix
 
 
+class PointPairs(Protocol):
+    """A pair's inlier correspondences (`verification.InlierPoints`): row i of `query`, N x 2
+    (x, y) in the query image's pixels, matches row i of `match` in the match image's; pixel
+    centres at integers (OpenCV's keypoints)."""
+
+    @property
+    def query(self) -> npt.NDArray[np.float32]: ...
+
+    @property
+    def match(self) -> npt.NDArray[np.float32]: ...
+
+
 @dataclass(frozen=True)
 class VisualLoop:
-    """One reported loop closure as drawn: the query, its (refined) match and a caption."""
+    """One reported loop closure as drawn: the query, its (refined) match and a caption, and
+    with verification the inlier points of its accepted check."""
 
     query_log_time_ns: int
     query_time_ns: int  # header stamp, else log time: what the images and poses are timed by
     match_log_time_ns: int
     match_time_ns: int
     caption: str
+    points: PointPairs | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -177,6 +196,8 @@ class Visualization:
     loops: Sequence[VisualLoop]  # in query log-time order
     trajectory: Trajectory | None
     frames: FrameClock | None = None  # None: no current pose
+    # The run verified its pairs: the match image gets annotations of its own (its points).
+    verified: bool = False
 
 
 def caption(record: LoopClosureRecord) -> str:
@@ -189,10 +210,15 @@ def caption(record: LoopClosureRecord) -> str:
     return f"match: {when}, {record.verification} ({detail})"
 
 
-def visual_loops(messages: Iterable[TimedMessage]) -> list[VisualLoop]:
-    """The reported loop closures among our messages, in query log-time order."""
+def visual_loops(
+    messages: Iterable[TimedMessage],
+    points: Mapping[tuple[int, int], PointPairs] | None = None,
+) -> list[VisualLoop]:
+    """The reported loop closures among our messages, in query log-time order; `points`: the
+    verified pairs' inlier points by (query, refined match) frame index."""
     # One at a time: the messages may be spooled (sinks.message_spool), read back as they go.
     records = (m.record for m in messages if isinstance(m.record, LoopClosureRecord))
+    points = points or {}
     loops = [
         VisualLoop(
             r.query.log_time_ns,
@@ -200,6 +226,7 @@ def visual_loops(messages: Iterable[TimedMessage]) -> list[VisualLoop]:
             r.matched.log_time_ns,
             r.matched.time_ns,
             caption(r),
+            points.get((r.query.index, r.matched.index)),
         )
         for r in records
         if r.reported
@@ -317,8 +344,13 @@ class VisualWriter:
         self._write_match_image(loop)
         text = Text(BADGE_PX + 8, 4.0, loop.caption, 12.0, TEXT_COLOR, TEXT_BACKGROUND)
         badge = Badge(4.0, 4.0, BADGE_PX, LOOP_COLOR)
-        annotations = self.encoder.annotations(loop.query_time_ns, [text], [badge])
-        self._add(ANNOTATIONS_TOPIC, self.encoder.annotations_schema, time, annotations)
+        query_dots, match_dots = _inlier_dots(loop.points)
+        schema = self.encoder.annotations_schema
+        annotations = self.encoder.annotations(loop.query_time_ns, [text], [badge], query_dots)
+        self._add(ANNOTATIONS_TOPIC, schema, time, annotations)
+        if self.plan.verified:
+            match_side = self.encoder.annotations(loop.match_time_ns, [], [], match_dots)
+            self._add(MATCH_ANNOTATIONS_TOPIC, schema, time, match_side)
         self._no_loop_due = True
         trajectory = self.plan.trajectory
         if trajectory is None:
@@ -359,6 +391,8 @@ class VisualWriter:
         """No current loop closure from this frame on (see the module's docstring)."""
         schema = self.encoder.annotations_schema
         self._add(ANNOTATIONS_TOPIC, schema, log_time_ns, self._no_loop_annotations)
+        if self.plan.verified:
+            self._add(MATCH_ANNOTATIONS_TOPIC, schema, log_time_ns, self._no_loop_annotations)
         trajectory = self.plan.trajectory
         if trajectory is not None:
             data = self.encoder.deletion(trajectory.frame_id, log_time_ns, *CURRENT_LOOP)
@@ -427,6 +461,20 @@ class VisualWriter:
         channel_id = self.channel_ids[topic]
         self.writer.add_message(channel_id, log_time_ns, data, log_time_ns, sequence & 0xFFFFFFFF)
         self.written[topic] = sequence + 1
+
+
+def _inlier_dots(points: PointPairs | None) -> tuple[list[Dots], list[Dots]]:
+    """The query's and the match's inlier points as drawn (none without them)."""
+    if points is None:
+        return [], []
+    return [_dots(points.query)], [_dots(points.match)]
+
+
+def _dots(pixels: npt.NDArray[np.float32]) -> Dots:
+    # Keypoints have pixel centres at integers; an annotation's origin is the top left pixel's
+    # corner: half a pixel on. Hundredths of a pixel are more than a viewer can show.
+    drawn = [(round(float(x) + 0.5, 2), round(float(y) + 0.5, 2)) for x, y in pixels]
+    return Dots(drawn, INLIER_COLOR, INLIER_RADIUS_PX)
 
 
 class _KeptMatches:

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from .geometry import (
         NOT_BRACKETED,
         FrameFeatures,
+        InlierPoints,
         Intrinsics,
         Verdict,
         best_verdict,
@@ -43,6 +44,7 @@ __all__ = [
     "VERIFIED_SEGMENTATION",
     "VERIFIED_THRESHOLD",
     "FrameFeatures",
+    "InlierPoints",
     "Intrinsics",
     "PairCheck",
     "Verdict",
@@ -69,6 +71,7 @@ __getattr__ = lazy_names(
         "geometry": [
             "NOT_BRACKETED",
             "FrameFeatures",
+            "InlierPoints",
             "Intrinsics",
             "Verdict",
             "best_verdict",

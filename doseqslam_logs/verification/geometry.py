@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import cv2
@@ -49,6 +49,9 @@ _DESCRIPTOR_BYTES = {"sift": 128, "orb": 32, "akaze": 61, "brisk": 64}
 DETAIL_FACTOR = 2
 # The reason of a refined match rejected by `bracketed_match`.
 NOT_BRACKETED = "not bracketed"
+# Inlier correspondences an accepted verdict keeps at most, for drawing: enough to show where
+# the two images agree, and a bounded cost per reported pair whatever its inliers.
+MAX_INLIER_POINTS = 200
 
 
 @dataclass(frozen=True)
@@ -111,6 +114,21 @@ class FrameFeatures:
         return int(self.keypoints.nbytes + self.descriptors.nbytes)
 
 
+@dataclass(frozen=True, eq=False, slots=True)
+class InlierPoints:
+    """Where an accepted pair's images agree: the robust fit's inliers (the first
+    MAX_INLIER_POINTS in ratio-test order), row i of `query` matching row i of `match`, each
+    N x 2 float32 (x, y) in its own frame's original pixels (pixel centres at integers, as
+    `FrameFeatures.keypoints`), whatever size the features were detected at."""
+
+    query: Points
+    match: Points
+
+    @property
+    def count(self) -> int:
+        return int(self.query.shape[0])
+
+
 @dataclass(frozen=True)
 class Verdict:
     """The outcome of checking one (query, match) pair.
@@ -124,6 +142,9 @@ class Verdict:
     `rotation_xyzw` is the unit quaternion (x, y, z, w) of R and `translation_direction` the
     unit vector t, with X_match = R X_query + t for a 3-D point X in each camera's frame
     (cv2.recoverPose with the query as the first view); `rotation_deg` is the angle of R.
+
+    `inlier_points` is set on an accepted verdict only (the visualization draws them): a
+    rejected pair keeps none, so checking it costs nothing more.
     """
 
     accepted: bool
@@ -136,6 +157,13 @@ class Verdict:
     rotation_xyzw: tuple[float, float, float, float] | None = None
     rotation_deg: float | None = None
     translation_direction: tuple[float, float, float] | None = None
+    inlier_points: InlierPoints | None = field(default=None, compare=False, repr=False)
+
+    def without_points(self) -> Verdict:
+        """This verdict without its inlier points (a rejected pair keeps none)."""
+        if self.inlier_points is None:
+            return self
+        return dataclasses.replace(self, inlier_points=None)
 
 
 def extract_features(gray: GrayImage, params: VerificationParameters) -> FrameFeatures:
@@ -227,8 +255,9 @@ def verify_pair(
     # The threshold is in feature-image pixels; keypoints are in original pixels.
     threshold = params.ransac_threshold_px / min(query.scale, match.scale)
     if intrinsics is None:
-        inliers = _fundamental_inliers(p_query, p_match, threshold, params)
-        return _verdict(inliers, tested, model, params)
+        mask = _fundamental_inliers(p_query, p_match, threshold, params)
+        verdict = _verdict(_count(mask), tested, model, params)
+        return _with_points(verdict, p_query, p_match, mask)
     return _essential_verdict(p_query, p_match, threshold, tested, params, intrinsics)
 
 
@@ -485,8 +514,8 @@ def _ratio_matches(
 
 def _fundamental_inliers(
     p_query: Points, p_match: Points, threshold: float, params: VerificationParameters
-) -> int:
-    """Inliers of a robust fundamental-matrix fit (0 when OpenCV finds no model)."""
+) -> npt.NDArray[Any] | None:
+    """The inlier mask of a robust fundamental-matrix fit (None when OpenCV finds no model)."""
     method = cv2.FM_RANSAC if params.method == "ransac" else cv2.USAC_MAGSAC
     cv2.setRNGSeed(_FIT_SEED)
     try:
@@ -494,10 +523,29 @@ def _fundamental_inliers(
             p_query, p_match, method, threshold, params.confidence, params.max_iterations
         )
     except cv2.error:  # degenerate configurations (e.g. all points equal) raise in some paths
-        return 0
+        return None
     if fundamental is None or mask is None or fundamental.shape != (3, 3):
-        return 0
-    return int(np.count_nonzero(mask))
+        return None
+    return mask
+
+
+def _count(mask: npt.NDArray[Any] | None) -> int:
+    return 0 if mask is None else int(np.count_nonzero(mask))
+
+
+def _with_points(
+    verdict: Verdict, p_query: Points, p_match: Points, mask: npt.NDArray[Any] | None
+) -> Verdict:
+    """An accepted verdict with its inliers' points (MAX_INLIER_POINTS at most); a rejected
+    one as it is."""
+    if not verdict.accepted or mask is None:
+        return verdict
+    kept = np.flatnonzero(mask.ravel())[:MAX_INLIER_POINTS]
+    points = InlierPoints(
+        np.ascontiguousarray(p_query[kept], np.float32),
+        np.ascontiguousarray(p_match[kept], np.float32),
+    )
+    return dataclasses.replace(verdict, inlier_points=points)
 
 
 def _essential_verdict(
@@ -527,7 +575,7 @@ def _essential_verdict(
     if posed.rotation_deg is not None and posed.rotation_deg > params.max_rotation_deg:
         reason = f"rotation over {params.max_rotation_deg:g} deg"
         return dataclasses.replace(posed, accepted=False, reason=reason)
-    return posed
+    return _with_points(posed, p_query, p_match, mask)
 
 
 def _with_pose(
@@ -540,7 +588,12 @@ def _with_pose(
 ) -> Verdict:
     """Add R and the direction of t (chirality check over the RANSAC inliers)."""
     try:
-        _, rotation, translation, _ = cv2.recoverPose(essential, p_query, p_match, k, mask=mask)
+        # recoverPose narrows the mask it is given to the chirality check's: ours stays the
+        # fit's, whose inliers the verdict counts and keeps.
+        chirality = mask.copy()
+        _, rotation, translation, _ = cv2.recoverPose(
+            essential, p_query, p_match, k, mask=chirality
+        )
     except cv2.error:
         return verdict
     rvec, _ = cv2.Rodrigues(rotation)

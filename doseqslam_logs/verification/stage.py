@@ -331,6 +331,9 @@ class Verifier:
             checks = self._exhaustive(decision, features)
         else:
             checks = self._strided(decision, stride, hint)
+        # Only reported pairs keep their inlier points (for drawing): a pair rejected after
+        # its fit (bracketing, motion rule, second guess) drops them.
+        checks = [c if c.accepted else _without_points(c) for c in checks]
         self.stats.candidates += len(checks)
         self.stats.accepted += sum(check.accepted for check in checks)
         self.stats.from_alternatives += sum(c.accepted and c.proposal > 0 for c in checks)
@@ -710,6 +713,12 @@ class Verifier:
         if absent:
             raise LookupError(f"the frame loader did not return frames {absent[:5]}")
         return loaded
+
+
+def _without_points(check: PairCheck) -> PairCheck:
+    if check.verdict.inlier_points is None:
+        return check
+    return dataclasses.replace(check, verdict=check.verdict.without_points())
 
 
 def _frames_around(match: int, radius: int, database_size: int) -> range:
