@@ -256,3 +256,30 @@ def test_a_json_image_message_gets_the_new_data_in_base64_and_keeps_its_other_fi
         == b'{"timestamp":{"sec":1,"nsec":2},"frame_id":"cam","data":"BAU=","format":"jpeg"}'
     )
     assert no_loop_frame._with_data(sample, b"other", b"\x04", "json") is None  # not its image
+
+
+def _jpeg_message(data: bytes) -> Any:
+    from doseqslam_logs.sources.base import ImageMessage
+
+    return ImageMessage("/camera", 0, None, "compressed", "jpeg", 0, 0, 0, False, data)
+
+
+def test_a_damaged_or_huge_camera_image_is_no_sample_and_prints_nothing(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    # The "no loop" frame is made from a camera message as the copy meets it: a damaged JPEG
+    # (libjpeg complains on fd 2) or one whose header claims more pixels than the cap (a
+    # bomb) is skipped, as the run's decoder skips it, without a word on stderr.
+    import cv2
+
+    ok, jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 90, np.uint8))
+    assert ok
+    good = jpeg.tobytes()
+    damaged = good[:200] + bytes(64) + good[264:]
+    sof = good.index(b"\xff\xc0") + 5  # height, then width, big-endian
+    huge = good[:sof] + (60000).to_bytes(2, "big") + (60000).to_bytes(2, "big") + good[sof + 4 :]
+    capfd.readouterr()
+    for data in (damaged, huge):
+        assert no_loop_frame._compressed(_jpeg_message(data)) is None, len(data)
+    assert no_loop_frame._compressed(_jpeg_message(good)) is not None
+    assert capfd.readouterr() == ("", "")

@@ -16,6 +16,8 @@ import struct
 import numpy as np
 
 from ..sources.base import ImageMessage
+from ..sources.image_header import DEFAULT_MAX_PIXELS, claimed_size
+from ..sources.images import captured_stderr
 
 NO_LOOP_TEXT = "no loop"
 GREY = 0x80  # every byte: mid grey in 8-bit and 16-bit encodings, whatever the byte order
@@ -64,8 +66,15 @@ def _label(frame: np.ndarray, white: int) -> None:
 def _compressed(image: ImageMessage) -> bytes | None:
     from ..sources.opencv_quiet import cv2
 
-    camera = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if camera is None:
+    # As the run's decoder does: an image whose header claims more than the cap is never
+    # decoded (a decompression bomb), and libjpeg's or libpng's complaints about a damaged one
+    # stay off stderr (one line per error); such an image is simply not the sample.
+    size = claimed_size(image.data)
+    if size is None or size[0] * size[1] > DEFAULT_MAX_PIXELS:
+        return None
+    with captured_stderr() as complaints:
+        camera = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if camera is None or "".join(complaints).strip():
         return None
     channels = 1 if camera.ndim == 2 else camera.shape[2]
     frame = np.full((*camera.shape[:2], channels), GREY, camera.dtype)
