@@ -21,7 +21,6 @@ new messages replace. The output appears atomically (`atomic`).
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,6 +41,7 @@ from ..sources.mcap_copy import input_records
 from .atomic import atomic_output
 from .mcap_writer import LIBRARY, refuse_same_file
 from .output_format import COMPRESSIONS, OutputFormat
+from .visual_encoders import json_message, json_pose, ros_header, ros_pose_stamped
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -134,7 +134,7 @@ class _PoseEncoder:
             _set_timestamp(message, stamp_ns)
             return bytes(message.SerializeToString())
         pose = {"timestamp": time_dict(stamp_ns), "frame_id": frame_id}
-        return _json({**pose, "pose": _json_pose(position, quaternion)})
+        return json_message({**pose, "pose": json_pose(position, quaternion)})
 
     def encode_path(self, path: PathMessage) -> bytes:
         """A whole path as one message, stamped at its last pose."""
@@ -156,31 +156,21 @@ class _PoseEncoder:
         document = {
             "timestamp": time_dict(stamp_ns),
             "frame_id": path.frame_id,
-            "poses": [_json_pose(p, q) for _, p, q in poses],
+            "poses": [json_pose(p, q) for _, p, q in poses],
         }
-        return _json(document)
+        return json_message(document)
 
     def _header(self, frame_id: str, stamp_ns: int) -> Any:
-        types: Any = self.typestore.types  # type: ignore[union-attr]  # ROS profiles only
-        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-        fields: dict[str, Any] = {
-            "stamp": types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
-            "frame_id": frame_id,
-        }
-        if self.profile == "ros1":
-            fields["seq"] = 0
-        return types["std_msgs/msg/Header"](**fields)
+        types = self.typestore.types  # type: ignore[union-attr]  # ROS profiles only
+        return ros_header(types, self._ros_version, frame_id, stamp_ns)
 
     def _ros_pose(self, frame_id: str, stamp_ns: int, position: F64, quaternion: F64) -> Any:
-        types: Any = self.typestore.types  # type: ignore[union-attr]  # ROS profiles only
-        xyz, xyzw = _xyz(position), _xyzw(quaternion)
-        return types[POSE_STAMPED](
-            header=self._header(frame_id, stamp_ns),
-            pose=types["geometry_msgs/msg/Pose"](
-                position=types["geometry_msgs/msg/Point"](**xyz),
-                orientation=types["geometry_msgs/msg/Quaternion"](**xyzw),
-            ),
-        )
+        types = self.typestore.types  # type: ignore[union-attr]  # ROS profiles only
+        return ros_pose_stamped(types, self._ros_version, frame_id, stamp_ns, position, quaternion)
+
+    @property
+    def _ros_version(self) -> int:
+        return 1 if self.profile == "ros1" else 2
 
     def _serialize(self, message: Any, typename: str = POSE_STAMPED) -> bytes:
         store: Any = self.typestore
@@ -195,14 +185,6 @@ def _xyz(position: F64) -> dict[str, float]:
 
 def _xyzw(quaternion: F64) -> dict[str, float]:
     return dict(zip("xyzw", (float(v) for v in quaternion), strict=True))
-
-
-def _json_pose(position: F64, quaternion: F64) -> dict[str, Any]:
-    return {"position": _xyz(position), "orientation": _xyzw(quaternion)}
-
-
-def _json(message: dict[str, Any]) -> bytes:
-    return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
 
 
 def _protobuf_class(name: str) -> Any:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -180,19 +180,9 @@ class _RosVisualEncoder(RosBuilder, VisualEncoder):
         return self._schema(POSE_STAMPED)
 
     def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
-        # Built directly, not by the generic builder: this runs at every camera frame, and
-        # walking the definition cost three times what the rest of the pose costs.
-        types: Any = self.typestore.types
-        sec, nanosec = divmod(time_ns, 1_000_000_000)
-        header: dict[str, Any] = {"stamp": types[TIME](sec=sec, nanosec=nanosec)}
-        if self.ros_version == 1:
-            header["seq"] = 0
-        pose = types["geometry_msgs/msg/Pose"](
-            position=types["geometry_msgs/msg/Point"](*position),
-            orientation=types["geometry_msgs/msg/Quaternion"](*orientation),
-        )
-        message = types[POSE_STAMPED](
-            header=types["std_msgs/msg/Header"](frame_id=frame_id, **header), pose=pose
+        types = self.typestore.types
+        message = ros_pose_stamped(
+            types, self.ros_version, frame_id, time_ns, position, orientation
         )
         if self.ros_version == 2:
             return bytes(self.typestore.serialize_cdr(message, POSE_STAMPED))
@@ -270,12 +260,12 @@ class JsonVisualEncoder(VisualEncoder):
         return self._schema("foxglove.PoseInFrame")
 
     def pose(self, frame_id: str, time_ns: int, position: Point3, orientation: Quaternion) -> bytes:
-        pose = _pose(position, orientation)
-        return _json({"timestamp": time_dict(time_ns), "frame_id": frame_id, "pose": pose})
+        pose = json_pose(position, orientation)
+        return json_message({"timestamp": time_dict(time_ns), "frame_id": frame_id, "pose": pose})
 
     def scene(self, frame_id: str, time_ns: int, lines: Sequence[Lines]) -> bytes:
         entities = [_entity(frame_id, time_ns, item) for item in lines]
-        return _json({"deletions": [], "entities": entities})
+        return json_message({"deletions": [], "entities": entities})
 
     def deletion(self, frame_id: str, time_ns: int, namespace: str, number: int) -> bytes:
         # Entities stamped no later than the deletion's timestamp go.
@@ -284,7 +274,7 @@ class JsonVisualEncoder(VisualEncoder):
             "type": _SCENE_MATCHING_ID,
             "id": _entity_id(namespace, number),
         }
-        return _json({"deletions": [deletion], "entities": []})
+        return json_message({"deletions": [deletion], "entities": []})
 
     def annotations(
         self,
@@ -293,7 +283,7 @@ class JsonVisualEncoder(VisualEncoder):
         badges: Sequence[Badge],
         dots: Sequence[Dots] = (),
     ) -> bytes:
-        return _json(_annotations(time_ns, texts, badges, dots))
+        return json_message(_annotations(time_ns, texts, badges, dots))
 
 
 def _entity_id(namespace: str, number: int) -> str:
@@ -326,13 +316,42 @@ def _entity(frame_id: str, time_ns: int, lines: Lines) -> dict[str, Any]:
     }
 
 
-def _xyz(point: Sequence[float]) -> dict[str, float]:
+def _xyz(point: Iterable[float]) -> dict[str, float]:
     return dict(zip("xyz", (float(v) for v in point), strict=True))
 
 
-def _pose(position: Point3, orientation: Quaternion) -> dict[str, dict[str, float]]:
+def json_pose(position: Iterable[float], orientation: Iterable[float]) -> dict[str, Any]:
+    """A foxglove.Pose as JSON: position x, y, z and orientation x, y, z, w."""
     xyzw = dict(zip("xyzw", (float(v) for v in orientation), strict=True))
     return {"position": _xyz(position), "orientation": xyzw}
+
+
+def ros_header(types: Any, ros_version: int, frame_id: str, time_ns: int) -> Any:
+    """A std_msgs/Header of `types` (a rosbags typestore's), with seq 0 in ROS 1."""
+    sec, nanosec = divmod(time_ns, 1_000_000_000)
+    fields: dict[str, Any] = {"stamp": types[TIME](sec=sec, nanosec=nanosec)}
+    if ros_version == 1:
+        fields["seq"] = 0
+    return types["std_msgs/msg/Header"](frame_id=frame_id, **fields)
+
+
+def ros_pose_stamped(
+    types: Any,
+    ros_version: int,
+    frame_id: str,
+    time_ns: int,
+    position: Iterable[float],
+    orientation: Iterable[float],
+) -> Any:
+    """A geometry_msgs/PoseStamped of `types`, built directly, not by the generic builder: the
+    current pose is one at every camera frame, and walking the definition cost three times
+    what the rest of the pose costs."""
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](*(float(v) for v in position)),
+        orientation=types["geometry_msgs/msg/Quaternion"](*(float(v) for v in orientation)),
+    )
+    header = ros_header(types, ros_version, frame_id, time_ns)
+    return types[POSE_STAMPED](header=header, pose=pose)
 
 
 def _annotations(
@@ -383,7 +402,8 @@ def _text(time_ns: int, text: Text) -> dict[str, Any]:
     }
 
 
-def _json(message: dict[str, Any]) -> bytes:
+def json_message(message: dict[str, Any]) -> bytes:
+    """A JSON message as our JSON channels hold it: compact, NaN refused."""
     return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
 
 
