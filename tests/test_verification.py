@@ -230,36 +230,68 @@ def test_shrunk_frames_report_original_coordinates(shared_data: Path) -> None:
 
 
 def test_a_feature_poor_frame_is_looked_at_again_finer(shared_data: Path) -> None:
-    # RTAB-Map image 16 (512x384, dim and plain) has about 50 ORB features at 320 px, below
-    # detail_below: it is detected again at 640 px (enlarged from its own 512) and keeps more.
+    # RTAB-Map image 16 (512x384, dim and plain) has about 50 ORB features at 320 px with
+    # OpenCV's FAST threshold (20), below detail_below: it is detected again at 640 px
+    # (enlarged from its own 512) and keeps more.
+    at_20 = P.replace(fast_threshold=20)
     gray = _gray(shared_data, RTABMAP, 16)
-    coarse = extract_features(gray, P.replace(detail_below=0))
-    finer = extract_features(gray, P)
-    assert coarse.count < P.detail_below
+    coarse = extract_features(gray, at_20.replace(detail_below=0))
+    finer = extract_features(gray, at_20)
+    assert coarse.count < at_20.detail_below
     assert finer.count > coarse.count and finer.scale == 1.25 > coarse.scale
     assert np.array_equal(
-        finer.descriptors, extract_features(gray, P.replace(image_max_side=640)).descriptors
+        finer.descriptors, extract_features(gray, at_20.replace(image_max_side=640)).descriptors
     )
     # A rich frame (image 32, hundreds of features at 320 px) is not looked at again.
     rich = _gray(shared_data, RTABMAP, 32)
-    assert extract_features(rich, P).count >= P.detail_below
+    assert extract_features(rich, at_20).count >= at_20.detail_below
     assert np.array_equal(
-        extract_features(rich, P).keypoints,
-        extract_features(rich, P.replace(detail_below=0)).keypoints,
+        extract_features(rich, at_20).keypoints,
+        extract_features(rich, at_20.replace(detail_below=0)).keypoints,
     )
 
 
+def test_the_lower_fast_threshold_finds_corners_on_plain_frames(shared_data: Path) -> None:
+    # RTAB-Map image 16 (dim and plain): OpenCV's FAST threshold of 20 finds about a hundred
+    # features even with the finer look; the default of 10 finds more than twice as many.
+    gray = _gray(shared_data, RTABMAP, 16)
+    opencv_default = extract_features(gray, P.replace(fast_threshold=20))
+    assert P.fast_threshold == 10
+    assert extract_features(gray, P).count > 2 * opencv_default.count
+
+
+@pytest.mark.parametrize(("query", "match"), [(42, 1), (60, 20)])
+def test_the_lower_fast_threshold_verifies_revisits_that_20_misses(
+    shared_data: Path, query: int, match: int
+) -> None:
+    # Two revisits of RTAB-Map (samples_GT.bmp) whose frames share too few matches at FAST
+    # threshold 20 for the check; at the default 10 they pass.
+    assert _is_loop(shared_data, RTABMAP, query, match)
+    at_20 = P.replace(fast_threshold=20)
+    assert not verify_pair(
+        _features(shared_data, RTABMAP, query, at_20),
+        _features(shared_data, RTABMAP, match, at_20),
+        at_20,
+    ).accepted
+    assert _verify(shared_data, RTABMAP, query, match).accepted
+
+
 def test_the_finer_look_finds_revisits_that_320_px_lost(shared_data: Path) -> None:
-    # RTAB-Map 57 revisits 17 (samples_GT.bmp); at 320 px both frames are too poor for the
-    # check (too few matches), the finer look accepts the pair.
+    # RTAB-Map 57 revisits 17 (samples_GT.bmp); at 320 px and FAST threshold 20 both frames are
+    # too poor for the check (too few matches), the finer look accepts the pair.
     assert _is_loop(shared_data, RTABMAP, 57, 17)
-    coarse = P.replace(detail_below=0)
+    at_20 = P.replace(fast_threshold=20)
+    coarse = at_20.replace(detail_below=0)
     assert not verify_pair(
         _features(shared_data, RTABMAP, 57, coarse),
         _features(shared_data, RTABMAP, 17, coarse),
         coarse,
     ).accepted
-    assert _verify(shared_data, RTABMAP, 57, 17).accepted
+    assert verify_pair(
+        _features(shared_data, RTABMAP, 57, at_20),
+        _features(shared_data, RTABMAP, 17, at_20),
+        at_20,
+    ).accepted
 
 
 @pytest.mark.parametrize(
@@ -495,6 +527,8 @@ def test_parameters_hash_is_stable_and_sensitive() -> None:
         {"min_inliers": 7},
         {"refine_radius": -1},
         {"detail_below": -1},
+        {"fast_threshold": 0},
+        {"fast_threshold": 255},
         {"max_rotation_deg": 0.0},
         {"max_rotation_deg": 181.0},
     ],

@@ -455,7 +455,9 @@ def _make_extractor(params: VerificationParameters) -> Any:
     factory: Any = getattr(cv2, _FACTORIES[name], None) or getattr(
         cv2.xfeatures2d, _FACTORIES[name]
     )
-    if name in ("sift", "orb"):
+    if name == "orb":
+        return factory(nfeatures=budget, fastThreshold=params.fast_threshold)
+    if name == "sift":
         return factory(nfeatures=budget)
     return factory()  # no feature budget: extract_features keeps the strongest
 
