@@ -210,26 +210,24 @@ def test_64x32_frames_give_true_loop_closures_and_no_false_one(tmp_path, capsys)
 
 
 def test_fewer_inliers_are_needed_only_when_a_frame_was_enlarged(shared_data) -> None:
-    """RTAB-Map 67 revisits 28 (samples_GT.bmp): at 64x32 and OpenCV's FAST threshold (20; the
-    default 10 finds more) the pair has fewer inliers than min_inliers but more than
-    small_frame_min_inliers (23 measured); the same count on frames that were not enlarged
-    fails."""
-    params = DEFAULT_VERIFICATION.replace(fast_threshold=20)
+    """RTAB-Map 67 revisits 28 (samples_GT.bmp): at 64x32 the pair has fewer inliers than
+    min_inliers but more than small_frame_min_inliers (23 measured); the same count on frames
+    that were not enlarged fails."""
     small = {}
     for number in (67, 28):
         path = shared_data / "rtabmap_samples_loop" / "images" / f"{number}.jpg"
         gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        small[number] = extract_features(shrink_log.shrink_gray(gray, 64, 32), params)
-    verdict = verify_pair(small[67], small[28], params)
+        small[number] = extract_features(shrink_log.shrink_gray(gray, 64, 32), DEFAULT_VERIFICATION)
+    verdict = verify_pair(small[67], small[28], DEFAULT_VERIFICATION)
     assert small[67].scale > 1 and verdict.accepted
-    assert params.small_frame_min_inliers <= verdict.inliers
-    assert verdict.inliers < params.min_inliers
-    strict = params.replace(small_frame_min_inliers=verdict.inliers + 1)
+    assert DEFAULT_VERIFICATION.small_frame_min_inliers <= verdict.inliers
+    assert verdict.inliers < DEFAULT_VERIFICATION.min_inliers
+    strict = DEFAULT_VERIFICATION.replace(small_frame_min_inliers=verdict.inliers + 1)
     assert not verify_pair(small[67], small[28], strict).accepted
     # Not enlarged (scale 1): min_inliers applies, whatever small_frame_min_inliers says.
     unscaled = {n: dataclasses.replace(f, scale=1.0) for n, f in small.items()}
-    plain = verify_pair(unscaled[67], unscaled[28], params)
-    assert plain.inliers < params.min_inliers and not plain.accepted
+    plain = verify_pair(unscaled[67], unscaled[28], DEFAULT_VERIFICATION)
+    assert plain.inliers < DEFAULT_VERIFICATION.min_inliers and not plain.accepted
 
 
 @settings(max_examples=60, deadline=None)

@@ -47,10 +47,8 @@ REPO = Path(__file__).resolve().parents[1]
 # camera frame (a new /doseqslam/current_pose topic, on purpose; the rest the same) in fc03c4a;
 # then the inlier keypoints drawn on both images at each loop closure (a POINTS annotation on
 # the query's, the new /doseqslam/match/image_annotations topic for the match's, on purpose;
-# the loop closures and sequences the same), the two merged in b4c0847; then ORB's FAST
-# threshold 10 for the verified features (a new parameter, fast_threshold: drive_loops 66 loop
-# closures instead of 64, on purpose) in 24af89a.
-BYTES_REFERENCE = "24af89a"
+# the loop closures and sequences the same), the two merged in b4c0847.
+BYTES_REFERENCE = "b4c0847"
 REFERENCE = BYTES_REFERENCE
 
 

@@ -34,13 +34,12 @@ class VerificationParameters:
     (25 s at 1 Hz) is where recall stops growing. Frames are shrunk to 320 px: on a 640x480
     log that costs a quarter of the features and pair checks, and the few frames that come out
     poor at 320 px (under `detail_below` features) get a second look at twice the side, so
-    larger frames keep the pairs the shrinking would lose; frames of 320 px or less are not
-    shrunk. Determinism needs no seed: OpenCV's RANSAC and USAC seed their own generators
-    (tested).
+    larger frames keep the pairs the shrinking would lose; smaller frames are enlarged to 320
+    px (`segmentation.feature_image`). Determinism needs no seed: OpenCV's RANSAC and USAC
+    seed their own generators (tested).
 
-    `ransac_threshold_px` is in pixels of the feature image (the frame shrunk so its longer
-    side is at most `image_max_side`, or a frame under 160 px enlarged to it:
-    `segmentation.feature_image`); it is scaled to the original frame's pixels.
+    `ransac_threshold_px` is in pixels of the feature image (the frame scaled so that its
+    longer side is `image_max_side`); it is scaled to the original frame's pixels.
     """
 
     feature_detector: VerificationDetector = "orb"
@@ -50,11 +49,11 @@ class VerificationParameters:
     # side (never past its own size): dim, plain frames are where verification fails at
     # 320 px, and a finer look finds what the shrinking lost. 0: never.
     detail_below: int = 150
-    # ORB's FAST corner threshold (grey levels; OpenCV's default is 20). Lower finds corners on
-    # plain and dim surfaces too, from which ORB still keeps the strongest max_features; as
-    # ORB-SLAM falls back to 7 where 20 finds none. Chosen on the generated matrix, the samples
-    # and RTAB-Map: far more revisits verified at 320x240 for the same false pairs.
-    fast_threshold: int = 10
+    # ORB's FAST corner threshold (grey levels; OpenCV's default). Lower finds corners on plain
+    # and dim surfaces too, from which ORB still keeps the strongest max_features, as ORB-SLAM
+    # falls back to 7 where 20 finds none: 10 verifies more revisits on the tuning sets and the
+    # generated matrix, for more CPU a frame pair (small frames fill their feature budget).
+    fast_threshold: int = 20
     ratio: float = 0.8  # Lowe ratio test on the two nearest descriptors
     method: RobustMethod = "magsac"  # cv2.USAC_MAGSAC, or cv2.FM_RANSAC / cv2.RANSAC
     ransac_threshold_px: float = 1.0  # epipolar distance (feature-image px) of an inlier
