@@ -47,8 +47,10 @@ REPO = Path(__file__).resolve().parents[1]
 # camera frame (a new /doseqslam/current_pose topic, on purpose; the rest the same) in fc03c4a;
 # then the inlier keypoints drawn on both images at each loop closure (a POINTS annotation on
 # the query's, the new /doseqslam/match/image_annotations topic for the match's, on purpose;
-# the loop closures and sequences the same), the two merged in b4c0847.
-BYTES_REFERENCE = "b4c0847"
+# the loop closures and sequences the same), the two merged in b4c0847; then a new
+# verification parameter, fast_threshold, at OpenCV's 20 (the parameters' hash in the metadata
+# changes; the decisions are the same) in 2eba7c3.
+BYTES_REFERENCE = "2eba7c3"
 REFERENCE = BYTES_REFERENCE
 
 
