@@ -179,14 +179,6 @@ class _PoseEncoder:
         return bytes(store.serialize_cdr(message, typename))
 
 
-def _xyz(position: F64) -> dict[str, float]:
-    return dict(zip("xyz", (float(v) for v in position), strict=True))
-
-
-def _xyzw(quaternion: F64) -> dict[str, float]:
-    return dict(zip("xyzw", (float(v) for v in quaternion), strict=True))
-
-
 def _protobuf_class(name: str) -> Any:
     """foxglove_schemas_protobuf's class of a Foxglove schema name."""
     from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
@@ -200,7 +192,8 @@ def _protobuf_pose(position: F64, quaternion: F64) -> Any:
     from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
     from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 
-    return Pose(position=Vector3(**_xyz(position)), orientation=Quaternion(**_xyzw(quaternion)))
+    pose = json_pose(position, quaternion)
+    return Pose(position=Vector3(**pose["position"]), orientation=Quaternion(**pose["orientation"]))
 
 
 def _set_timestamp(message: Any, stamp_ns: int) -> None:

@@ -49,7 +49,12 @@ from ..annotations.records import OUR_TOPIC_PREFIX, FrameTimes, LoopClosureRecor
 from ..errors import SourceError
 from ..sources import Log, opened
 from ..sources.base import Source
-from ..sources.poses import PoseTrack, default_pose_topic, read_poses
+from ..sources.poses import (
+    SLERP_LINEAR_BELOW_RAD,
+    PoseTrack,
+    default_pose_topic,
+    read_poses,
+)
 from .no_loop_frame import no_loop_message
 from .visual_encoders import (
     LINE_LIST,
@@ -154,7 +159,7 @@ def _slerp(q0: list[float], q1: list[float], fraction: float) -> tuple[float, fl
     if cosine < 0:  # the shorter arc
         q1, cosine = [-b for b in q1], -cosine
     angle = math.acos(min(cosine, 1.0))
-    if angle < 1e-6:
+    if angle < SLERP_LINEAR_BELOW_RAD:
         w0, w1 = 1 - fraction, fraction
     else:
         w0 = math.sin((1 - fraction) * angle) / math.sin(angle)

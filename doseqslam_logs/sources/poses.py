@@ -44,7 +44,7 @@ POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, FOXGLOVE_POS
 _WITH_COVARIANCE = (ODOMETRY, POSE_WITH_COVARIANCE_STAMPED)
 
 # Below this angle between two quaternions slerp is numerically lerp.
-_SLERP_LINEAR_BELOW_RAD = 1e-6
+SLERP_LINEAR_BELOW_RAD = 1e-6
 
 
 @dataclass(frozen=True)
@@ -112,7 +112,7 @@ def slerp(q0: F64, q1: F64, fraction: F64) -> F64:
     q1 = np.where((np.sum(q0 * q1, axis=-1) < 0)[..., None], -q1, q1)
     cosine = np.clip(np.sum(q0 * q1, axis=-1), -1.0, 1.0)
     angle = np.arccos(cosine)
-    small = angle < _SLERP_LINEAR_BELOW_RAD
+    small = angle < SLERP_LINEAR_BELOW_RAD
     sine = np.where(small, 1.0, np.sin(angle))
     w0 = np.where(small, 1 - fraction, np.sin((1 - fraction) * angle) / sine)
     w1 = np.where(small, fraction, np.sin(fraction * angle) / sine)
