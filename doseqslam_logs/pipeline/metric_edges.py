@@ -15,8 +15,9 @@ within NEIGHBOUR_REACH_S of the match. A pair left with the rotation only also g
 neighbours, chosen the same way, for that rotation's consensus (read only for those pairs).
 
 Features of the fit: SIFT on frames shrunk to the verification's working size
-(`image_max_side`): the run's ORB features miss the accuracy a loop edge needs, SIFT's meet
-it. A fit is costly (SIFT on up to six frames: query, match, neighbours), so at high frame
+(`image_max_side`), a feature-poor one looked at again at twice that size as verification does
+(`detail_below`; without it a 640x480 drive's fits lost a third of their PnP edges): the run's
+ORB features miss the accuracy a loop edge needs, SIFT's meet it. A fit is costly (SIFT on up to six frames: query, match, neighbours), so at high frame
 rates (the pairs of a sequence with more than one frame per the verification's
 `query_interval_s`, as its query stride) at most one pair per `METRIC_INTERVAL_S` of query
 time gets a metric fit: near-copy pairs add edges, not information, to a pose graph, and a
