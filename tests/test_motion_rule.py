@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,18 +14,23 @@ from detector_helpers import rtabmap_frames, sequence_decision
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
 from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier
+from doseqslam_logs.verification.geometry import Intrinsics
 from doseqslam_logs.verification.motion import (
+    ODOMETRY_DISAGREES,
     STATIONARY,
     CameraPath,
+    agrees_with_odometry,
     frames_between,
     left_by_images,
 )
 from doseqslam_logs.verification.summary import verification_summary
 from loggen import make_sample_logs as gen
+from reproduce import generalization_matrix as matrix
 
 FRAME_NS = 10**9  # 1 Hz: every candidate is checked (stride 1)
 
@@ -133,6 +139,72 @@ def test_a_revisit_after_driving_away_is_kept_by_either_evidence(shared_data) ->
     assert gap_stats.motion_by_images > 0
 
 
+@given(paths(), st.data())
+def test_turn_is_the_angle_between_the_frames_and_the_path_driven_between(path, data) -> None:
+    n = len(path.valid)
+    angles = data.draw(arrays(np.float64, n, elements=st.floats(-179, 179)))
+    turned = CameraPath(
+        path.topic,
+        path.positions,
+        path.valid,
+        Rotation.from_euler("z", angles[:, None], degrees=True).as_quat(),
+    )
+    a, b = data.draw(st.integers(0, n - 1)), data.draw(st.integers(0, n - 1))
+    assert path.turn(a, b) is None  # no headings
+    turn = turned.turn(a, b)
+    if not path.covers(min(a, b), max(a, b)):
+        assert turn is None
+        return
+    assert turn is not None and turn == turned.turn(b, a)
+    expected = abs((angles[b] - angles[a] + 180.0) % 360.0 - 180.0)
+    assert turn[0] == pytest.approx(expected, abs=1e-6)
+    steps = np.linalg.norm(np.diff(path.positions[min(a, b) : max(a, b) + 1], axis=0), axis=1)
+    assert turn[1] == pytest.approx(float(np.sum(steps)), rel=1e-9, abs=1e-6)
+
+
+def test_agreeing_with_the_odometry_allows_for_its_drift_along_the_path() -> None:
+    assert agrees_with_odometry(2.0, (31.0, 0.0), 30.0, 0.45) is True  # 29 deg more
+    assert agrees_with_odometry(2.0, (33.0, 0.0), 30.0, 0.45) is False
+    assert agrees_with_odometry(2.0, (95.0, 150.0), 30.0, 0.45) is True  # 97.5 allowed
+    assert agrees_with_odometry(2.0, (95.0, 100.0), 30.0, 0.45) is False  # 75 allowed
+
+
+def test_a_look_alike_the_odometry_turned_away_from_is_rejected(shared_data) -> None:
+    """The revisit's one accepted pair (an essential fit with a rotation under 2 deg): kept
+    where the odometry turned as little, rejected where it turned 95 deg over 37 m (a facade
+    seen facing another way), kept again where 95 deg is within a long drive's drift."""
+    frames = _frames(shared_data)
+    revisit = sequence_decision(5, FRAME_NS, 5, first=99, match=5, database_size=90)
+    n = len(frames)
+    height, width = frames[0].shape
+    loader = lambda indices: ((i, frames[i]) for i in indices)  # noqa: E731
+
+    def verified(turn_deg: float, metres_a_frame: float):
+        x = metres_a_frame * np.concatenate([np.arange(99.0), np.arange(5.0, 5.0 + n - 99)])
+        yaw = np.where(np.arange(n) >= 99, turn_deg, 0.0)
+        path = CameraPath(
+            "/odom",
+            np.column_stack([x, np.zeros(n), np.zeros(n)]),
+            np.ones(n, bool),
+            Rotation.from_euler("y", yaw[:, None], degrees=True).as_quat(),
+        )
+        verifier = Verifier(
+            DEFAULT_VERIFICATION, loader, Intrinsics.assumed(width, height), camera_path=path
+        )
+        return verifier.verify(revisit), verifier.stats
+
+    kept, kept_stats = verified(0.0, 0.2)
+    assert kept.accepted_pairs == 1 and kept_stats.odometry_disagrees == 0
+    rejected, stats = verified(95.0, 0.2)
+    assert rejected.accepted_pairs == 0 and stats.odometry_disagrees == 1
+    reasons = [check.verdict.reason for check in rejected.checks]
+    assert reasons.count(ODOMETRY_DISAGREES) == 1
+    assert "1 rejected (odometry disagrees)" in verification_summary(stats, 1.0, "essential")
+    assert verified(95.0, 1.0)[0].accepted_pairs == 1  # 190 m driven: 115 deg allowed
+    off = DEFAULT_VERIFICATION.replace(heading_drift_deg=180.0)
+    assert off.heading_drift_deg == 180.0
+
+
 def test_motion_parameters_are_validated() -> None:
     from doseqslam_logs.errors import ParameterError
 
@@ -140,6 +212,10 @@ def test_motion_parameters_are_validated() -> None:
         DEFAULT_VERIFICATION.replace(leave_distance_m=0.0)
     with pytest.raises(ParameterError, match="leave_samples"):
         DEFAULT_VERIFICATION.replace(leave_samples=0)
+    with pytest.raises(ParameterError, match="heading_drift_deg"):
+        DEFAULT_VERIFICATION.replace(heading_drift_deg=181.0)
+    with pytest.raises(ParameterError, match="heading_drift_deg_per_m"):
+        DEFAULT_VERIFICATION.replace(heading_drift_deg_per_m=-0.1)
 
 
 # -- generated parked drives (the generalization matrix's parking cells, shortened) ------------
@@ -191,3 +267,27 @@ def test_a_drive_that_parks_reports_no_false_pair(parked_drive, evidence) -> Non
     reported = [(lc.query.index, lc.matched.index) for lc in annotated.reported_loop_closures]
     assert len(reported) >= 20
     assert [pair for pair in reported if not gt[pair]] == []
+
+
+# The matrix's out-and-back cell, seed 1: a repeated facade seen on the way back facing 95 deg
+# away (path 121 m) passed the essential fit with a 1 deg rotation; the odometry's turn rejects
+# it.
+OUT_AND_BACK = replace(matrix.BASE, name="outandback", route="outandback", seed=1)
+
+
+@pytest.mark.slow
+def test_the_out_and_back_cell_has_no_false_pair(tmp_path) -> None:
+    gen.generate(OUT_AND_BACK, tmp_path, jobs=2, progress=False)
+    out = tmp_path / "out.mcap"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert (
+            main(["annotate", str(tmp_path / "outandback.ros2.mcap"), "-o", str(out), "--json"])
+            == 0
+        )
+    assert json.loads(printed.getvalue())["verification"]["rejected_odometry_disagrees"] >= 1
+    gt = np.load(tmp_path / "outandback.gt.npz")["gt"].astype(bool)
+    gt |= gt.T
+    reported = read_annotations(out).reported_loop_closures
+    assert len(reported) >= 100  # 135 measured
+    assert [lc for lc in reported if not gt[lc.query.index, lc.matched.index]] == []

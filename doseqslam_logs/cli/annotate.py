@@ -272,6 +272,7 @@ def _verification_json(result: AnnotateResult) -> dict[str, object] | None:
         "accepted": stats.accepted,
         "from_alternatives": stats.from_alternatives,
         "rejected_stationary": stats.stationary,
+        "rejected_odometry_disagrees": stats.odometry_disagrees,
         "motion_evidence": verification.motion_summary,
         "skipped": stats.skipped,
         "frame_pairs": stats.pairs,

@@ -17,13 +17,13 @@ neighbours, chosen the same way, for that rotation's consensus (read only for th
 Features of the fit: SIFT on frames shrunk to the verification's working size
 (`image_max_side`), a feature-poor one looked at again at twice that size as verification does
 (`detail_below`; without it a 640x480 drive's fits lost a third of their PnP edges): the run's
-ORB features miss the accuracy a loop edge needs, SIFT's meet it. A fit is costly (SIFT on up to six frames: query, match, neighbours), so at high frame
-rates (the pairs of a sequence with more than one frame per the verification's
-`query_interval_s`, as its query stride) at most one pair per `METRIC_INTERVAL_S` of query
-time gets a metric fit: near-copy pairs add edges, not information, to a pose graph, and a
-pose graph needs a loop edge every few tens of metres. The others record no metric pose and
-say why (their essential-fit rotation stays on the message, as for every accepted pair). At
-2 Hz every accepted pair is fitted.
+ORB features miss the accuracy a loop edge needs, SIFT's meet it. A fit is costly (SIFT on up
+to six frames: query, match, neighbours), so at high frame rates (the pairs of a sequence with
+more than one frame per the verification's `query_interval_s`, as its query stride) at most one
+pair per `METRIC_INTERVAL_S` of query time gets a metric fit: near-copy pairs add edges, not
+information, to a pose graph, and a pose graph needs a loop edge every few tens of metres. The
+others record no metric pose and say why (their essential-fit rotation stays on the message, as
+for every accepted pair). At 2 Hz every accepted pair is fitted.
 
 Memory is bounded whatever the log's length: the depth topic is read once, each image used
 and dropped as it arrives (`stream_depth`); frames are re-read through `LogFrameReader` and
@@ -156,8 +156,8 @@ class OdometryFrames:
     track: PoseTrack | None = None  # the poses as read (the trajectory drawn reuses them)
 
     def camera_path(self) -> CameraPath:
-        """The positions at the frames, for verification's motion rule."""
-        return CameraPath(self.topic, self.positions, self.valid)
+        """The positions and orientations at the frames, for verification's motion rule."""
+        return CameraPath(self.topic, self.positions, self.valid, self.rotations.as_quat())
 
     def relative(self, match: int, neighbour: int) -> tuple[Rotation, F64]:
         """(R, t) with X_neighbour = R X_match + t (the core's `OdometryNeighbour`)."""

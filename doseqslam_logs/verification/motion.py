@@ -20,16 +20,25 @@ Two kinds of evidence, the first that covers the pair decides:
   the time between.
 
 A pair that passes the check but not the rule is rejected with the reason STATIONARY.
+
+With a pose topic that gives headings, the pair must also agree with it (`CameraPath.turn`,
+VINS-Mono's check of a loop's yaw drift): a look-alike facade seen facing another way passes
+the essential fit with a small rotation where the odometry turned 90 degrees. The odometry's
+own heading drifts with the path driven (0.045 deg/m on the generated hour), so the turn it
+may exceed the fit's rotation by grows with the path between the two frames. A pair beyond it
+is rejected with the reason ODOMETRY_DISAGREES.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
 STATIONARY = "stationary"
+ODOMETRY_DISAGREES = "odometry disagrees"
 # Frames of the path scanned at a time from the match on: a camera that left is usually found
 # gone within the first block, so a check costs a block, not the whole span (hours at 10 Hz).
 _SCAN_BLOCK = 256
@@ -43,12 +52,19 @@ class CameraPath:
     topic: str
     positions: npt.NDArray[np.float64]  # (N, 3)
     valid: npt.NDArray[np.bool_]  # (N,)
+    # The camera's orientation at each frame, unit quaternions (N, 4), or None: no headings.
+    orientations: npt.NDArray[np.float64] | None = None
     # frames without a pose before frame i, so that a span's coverage costs O(1)
     _invalid_before: npt.NDArray[np.int64] = field(init=False, repr=False, compare=False)
+    # metres driven from frame 0 to frame i (steps into or out of a frame without a pose: 0)
+    _driven: npt.NDArray[np.float64] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         counts = np.concatenate([[0], np.cumsum(~self.valid, dtype=np.int64)])
         object.__setattr__(self, "_invalid_before", counts)
+        steps = np.linalg.norm(np.diff(self.positions, axis=0), axis=1)
+        steps[~(self.valid[1:] & self.valid[:-1])] = 0.0
+        object.__setattr__(self, "_driven", np.concatenate([[0.0], np.cumsum(steps)]))
 
     def covers(self, first: int, last: int) -> bool:
         """Every frame from `first` to `last` (inclusive) has a pose."""
@@ -68,6 +84,29 @@ class CameraPath:
             if float(np.max(np.sum((block - origin) ** 2, axis=1))) >= distance_m**2:
                 return True
         return False
+
+    def turn(self, match: int, query: int) -> tuple[float, float] | None:
+        """(degrees the camera turned from `match` to `query`, metres driven between them) by
+        the poses; None without headings or when the poses do not cover the frames between."""
+        first, last = min(match, query), max(match, query)
+        if self.orientations is None or not self.covers(first, last):
+            return None
+        a, b = self.orientations[match], self.orientations[query]
+        b = b if float(np.dot(a, b)) >= 0 else -b  # q and -q: one rotation
+        # The quaternions are half the rotation's angle apart, and atan2(|a - b|, |a + b|) is
+        # half that angle: well conditioned near 0, where the arc cosine of a . b is not.
+        half = math.atan2(float(np.linalg.norm(a - b)), float(np.linalg.norm(a + b)))
+        return math.degrees(4.0 * half), float(self._driven[last] - self._driven[first])
+
+
+def agrees_with_odometry(
+    fit_rotation_deg: float, turn: tuple[float, float], drift_deg: float, drift_deg_per_m: float
+) -> bool:
+    """Whether the essential fit's rotation and the odometry's `turn` (degrees, metres driven)
+    agree: the odometry turned at most drift_deg + drift_deg_per_m x metres more (the fit's
+    angle is a lower bound of the drift it leaves: the two rotations' axes are not compared)."""
+    turned, driven = turn
+    return turned - fit_rotation_deg <= drift_deg + drift_deg_per_m * driven
 
 
 def frames_between(match: int, query: int, samples: int) -> list[int]:

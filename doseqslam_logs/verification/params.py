@@ -85,10 +85,18 @@ class VerificationParameters:
     # The motion rule (verification.motion): a pair is reported only if the camera left the
     # match's place and came back; else it is rejected "stationary". With a pose topic, left
     # means at least leave_distance_m from the match's position at some frame between; without
-    # one, at least half of leave_samples frames between them do not see the query's place.
+    # one, at least a third of leave_samples frames between them see neither end's place.
     motion_rule: bool = True
     leave_distance_m: float = 2.0
     leave_samples: int = 6
+    # With a pose topic, the images' turn must agree with the odometry's (verification.motion):
+    # a pair whose odometry turned more than the essential fit's rotation by over
+    # heading_drift_deg + heading_drift_deg_per_m x the path between is rejected "odometry
+    # disagrees" (a look-alike seen facing another way). 30 deg is VINS-Mono's bound on a
+    # loop's yaw drift; 0.45 deg/m three times the odometry's yaw error per metre that the
+    # metric stage assumes, so a long drive's drift is allowed for. 180: off.
+    heading_drift_deg: float = 30.0
+    heading_drift_deg_per_m: float = 0.45
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
     # the features of these that ORB would keep for their budget (on each pyramid level the
@@ -136,6 +144,14 @@ class VerificationParameters:
             )
         if not self.leave_distance_m > 0:
             raise ParameterError(f"leave_distance_m must be positive, got {self.leave_distance_m}")
+        if not 0 <= self.heading_drift_deg <= 180:
+            raise ParameterError(
+                f"heading_drift_deg must be in [0, 180], got {self.heading_drift_deg}"
+            )
+        if not self.heading_drift_deg_per_m >= 0:
+            raise ParameterError(
+                f"heading_drift_deg_per_m must be >= 0, got {self.heading_drift_deg_per_m}"
+            )
         if self.leave_samples < 1:
             raise ParameterError(f"leave_samples must be >= 1, got {self.leave_samples}")
         if not self.query_interval_s >= 0:

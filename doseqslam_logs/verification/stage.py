@@ -96,7 +96,14 @@ from .geometry import (
     side_of_query,
     verify_pair,
 )
-from .motion import STATIONARY, CameraPath, frames_between, left_by_images
+from .motion import (
+    ODOMETRY_DISAGREES,
+    STATIONARY,
+    CameraPath,
+    agrees_with_odometry,
+    frames_between,
+    left_by_images,
+)
 from .params import VerificationParameters
 
 # Sorted frame indices in, (index, gray frame) out for each of them.
@@ -217,6 +224,7 @@ class VerificationStats:
     skipped: int = 0  # candidates left unchecked (counted in `candidates`)
     given_up: int = 0  # of the skipped: after their sequence's two hopeless checks
     stationary: int = 0  # candidates rejected by the motion rule (verification.motion)
+    odometry_disagrees: int = 0  # candidates whose fit's turn the pose topic's contradicts
     motion_by_images: int = 0  # motion-rule decisions taken on image evidence (no poses)
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
     frames_loaded: int = 0  # frames decoded for features (re-reads of evicted frames included)
@@ -341,6 +349,9 @@ class Verifier:
         self.stats.skipped += sum(check.skipped for check in checks)
         self.stats.given_up += sum(check.verdict.reason == GIVEN_UP_REASON for check in checks)
         self.stats.stationary += sum(check.verdict.reason == STATIONARY for check in checks)
+        self.stats.odometry_disagrees += sum(
+            check.verdict.reason == ODOMETRY_DISAGREES for check in checks
+        )
         return VerifiedDecision(decision, tuple(checks))
 
     def _exhaustive(
@@ -586,8 +597,9 @@ class Verifier:
         self, query: FrameFeatures, candidate: Candidate, refined: int, verdict: Verdict
     ) -> Verdict:
         """An accepted verdict as the motion rule leaves it: rejected STATIONARY when the
-        camera did not leave the refined match's place before the query (verification.motion).
-        The inliers stay: the place is seen, it is only not a revisit."""
+        camera did not leave the refined match's place before the query, ODOMETRY_DISAGREES
+        when the pose topic turned far more than the fit (verification.motion). The inliers
+        stay: the place is seen, it is only not a revisit."""
         if not verdict.accepted or not self.params.motion_rule:
             return verdict
         q = candidate.query_index
@@ -597,7 +609,21 @@ class Verifier:
         if left is None:
             self.stats.motion_by_images += 1
             left = left_by_images(self._away(query, q, refined))
-        return verdict if left else dataclasses.replace(verdict, accepted=False, reason=STATIONARY)
+        if not left:
+            return dataclasses.replace(verdict, accepted=False, reason=STATIONARY)
+        if not self._agrees_with_odometry(refined, q, verdict):
+            return dataclasses.replace(verdict, accepted=False, reason=ODOMETRY_DISAGREES)
+        return verdict
+
+    def _agrees_with_odometry(self, match: int, query: int, verdict: Verdict) -> bool:
+        """The fit's rotation agrees with the pose topic's turn (True without one, or without
+        a rotation: a fundamental-matrix fit has none)."""
+        path, params = self.camera_path, self.params
+        turn = None if path is None else path.turn(match, query)
+        if turn is None or verdict.rotation_deg is None:
+            return True
+        drift, per_m = params.heading_drift_deg, params.heading_drift_deg_per_m
+        return agrees_with_odometry(verdict.rotation_deg, turn, drift, per_m)
 
     def _away(self, query: FrameFeatures, query_index: int, match: int) -> list[bool]:
         """For each frame sampled between the match and the query: whether it sees neither of

@@ -11,18 +11,22 @@ if TYPE_CHECKING:  # the stage imports the pair checks (OpenCV, SciPy); a summar
 def verification_summary(
     stats: VerificationStats, wall_s: float, model: str, motion: str = ""
 ) -> str:
-    """ "N accepted[, K of them on a next-best trajectory][, T rejected as stationary (E)][, S
-    skipped (high frame rate)] (P frame pairs checked, X ms each, W s; MODEL)"; `model` says
-    which matrix was fitted, `motion` the motion rule's evidence (e.g. "odometry /odom")."""
+    """ "N accepted[, K of them on a next-best trajectory][, T rejected as stationary (E)][, D
+    rejected (odometry disagrees)][, S skipped (high frame rate)] (P frame pairs checked, X ms
+    each, W s; MODEL)"; `model` says which matrix was fitted, `motion` the motion rule's
+    evidence (e.g. "odometry /odom")."""
     alternatives = stats.from_alternatives
     evidence = f" ({motion})" if motion else ""
     stationary = (
         f", {stats.stationary} rejected as stationary{evidence}" if stats.stationary else ""
     )
+    disagrees = stats.odometry_disagrees
+    turned = f", {disagrees} rejected (odometry disagrees)" if disagrees else ""
     return (
         f"{stats.accepted} accepted"
         f"{f', {alternatives} of them on a next-best trajectory' if alternatives else ''}"
         f"{stationary}"
+        f"{turned}"
         f"{f', {stats.skipped} skipped (high frame rate)' if stats.skipped else ''} "
         f"({stats.pairs} frame pairs checked, {stats.ms_per_pair:.1f} ms each, "
         f"{wall_s:.1f} s; {model})"
