@@ -49,8 +49,10 @@ REPO = Path(__file__).resolve().parents[1]
 # the query's, the new /doseqslam/match/image_annotations topic for the match's, on purpose;
 # the loop closures and sequences the same), the two merged in b4c0847; then a new
 # verification parameter, fast_threshold, at OpenCV's 20 (the parameters' hash in the metadata
-# changes; the decisions are the same) in 2eba7c3.
-BYTES_REFERENCE = "2eba7c3"
+# changes; the decisions are the same) in 2eba7c3; then the odometry's heading check
+# (heading_drift_deg and heading_drift_deg_per_m: new verification parameters, the samples'
+# decisions the same, their hash moves) in 8f7b15c.
+BYTES_REFERENCE = "8f7b15c"
 REFERENCE = BYTES_REFERENCE
 
 
