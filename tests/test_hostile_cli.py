@@ -371,6 +371,8 @@ FLOAT_VERIFICATION = [
     "query_interval_s",
     "max_rotation_deg",
     "leave_distance_m",
+    "heading_drift_deg",
+    "heading_drift_deg_per_m",
 ]
 
 
