@@ -24,9 +24,9 @@ A pair that passes the check but not the rule is rejected with the reason STATIO
 With a pose topic that gives headings, the pair must also agree with it (`CameraPath.turn`,
 VINS-Mono's check of a loop's yaw drift): a look-alike facade seen facing another way passes
 the essential fit with a small rotation where the odometry turned 90 degrees. The odometry's
-own heading drifts with the path driven (0.045 deg/m on the generated hour), so the turn it
-may exceed the fit's rotation by grows with the path between the two frames. A pair beyond it
-is rejected with the reason ODOMETRY_DISAGREES.
+own heading drifts with the path driven, so the turn it may exceed the fit's rotation by
+grows with the path between the two frames. A pair beyond it is rejected with the reason
+ODOMETRY_DISAGREES.
 """
 
 from __future__ import annotations
