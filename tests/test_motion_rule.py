@@ -179,7 +179,7 @@ def test_a_look_alike_the_odometry_turned_away_from_is_rejected(shared_data) -> 
     height, width = frames[0].shape
     loader = lambda indices: ((i, frames[i]) for i in indices)  # noqa: E731
 
-    def verified(turn_deg: float, metres_a_frame: float):
+    def verified(turn_deg: float, metres_a_frame: float, params=DEFAULT_VERIFICATION):
         x = metres_a_frame * np.concatenate([np.arange(99.0), np.arange(5.0, 5.0 + n - 99)])
         yaw = np.where(np.arange(n) >= 99, turn_deg, 0.0)
         path = CameraPath(
@@ -188,21 +188,23 @@ def test_a_look_alike_the_odometry_turned_away_from_is_rejected(shared_data) -> 
             np.ones(n, bool),
             Rotation.from_euler("y", yaw[:, None], degrees=True).as_quat(),
         )
-        verifier = Verifier(
-            DEFAULT_VERIFICATION, loader, Intrinsics.assumed(width, height), camera_path=path
-        )
+        verifier = Verifier(params, loader, Intrinsics.assumed(width, height), camera_path=path)
         return verifier.verify(revisit), verifier.stats
 
+    # An accepted pair's fit turned at most max_rotation_deg (10): 95 deg exceeds it by 85 or
+    # more, over the 47 deg allowed for 37 m and under the 113 allowed for 185 m.
     kept, kept_stats = verified(0.0, 0.2)
-    assert kept.accepted_pairs == 1 and kept_stats.odometry_disagrees == 0
+    accepted = kept.accepted_pairs
+    assert accepted >= 1 and kept_stats.odometry_disagrees == 0  # 1 measured
     rejected, stats = verified(95.0, 0.2)
-    assert rejected.accepted_pairs == 0 and stats.odometry_disagrees == 1
+    assert rejected.accepted_pairs == 0 and stats.odometry_disagrees == accepted
     reasons = [check.verdict.reason for check in rejected.checks]
-    assert reasons.count(ODOMETRY_DISAGREES) == 1
-    assert "1 rejected (odometry disagrees)" in verification_summary(stats, 1.0, "essential")
-    assert verified(95.0, 1.0)[0].accepted_pairs == 1  # 190 m driven: 115 deg allowed
+    assert reasons.count(ODOMETRY_DISAGREES) == accepted
+    summary = verification_summary(stats, 1.0, "essential")
+    assert f"{accepted} rejected (odometry disagrees)" in summary
+    assert verified(95.0, 1.0)[0].accepted_pairs == accepted
     off = DEFAULT_VERIFICATION.replace(heading_drift_deg=180.0)
-    assert off.heading_drift_deg == 180.0
+    assert verified(95.0, 0.2, off)[0].accepted_pairs == accepted
 
 
 def test_motion_parameters_are_validated() -> None:
@@ -285,9 +287,13 @@ def test_the_out_and_back_cell_has_no_false_pair(tmp_path) -> None:
             main(["annotate", str(tmp_path / "outandback.ros2.mcap"), "-o", str(out), "--json"])
             == 0
         )
-    assert json.loads(printed.getvalue())["verification"]["rejected_odometry_disagrees"] >= 1
+    rejected = json.loads(printed.getvalue())["verification"]["rejected_odometry_disagrees"]
     gt = np.load(tmp_path / "outandback.gt.npz")["gt"].astype(bool)
     gt |= gt.T
-    reported = read_annotations(out).reported_loop_closures
+    annotated = read_annotations(out)
+    # 1 measured on this machine: the facade pair; counted as the records say
+    records = [lc for lc in annotated.loop_closures if lc.rejection_reason == ODOMETRY_DISAGREES]
+    assert len(records) == rejected
+    reported = annotated.reported_loop_closures
     assert len(reported) >= 100  # 135 measured
     assert [lc for lc in reported if not gt[lc.query.index, lc.matched.index]] == []
