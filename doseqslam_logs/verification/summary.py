@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from .motion import ODOMETRY_DISAGREES, STATIONARY
+
 if TYPE_CHECKING:  # the stage imports the pair checks (OpenCV, SciPy); a summary needs none
     from .stage import VerificationStats
 
@@ -18,10 +20,10 @@ def verification_summary(
     alternatives = stats.from_alternatives
     evidence = f" ({motion})" if motion else ""
     stationary = (
-        f", {stats.stationary} rejected as stationary{evidence}" if stats.stationary else ""
+        f", {stats.stationary} rejected as {STATIONARY}{evidence}" if stats.stationary else ""
     )
     disagrees = stats.odometry_disagrees
-    turned = f", {disagrees} rejected (odometry disagrees)" if disagrees else ""
+    turned = f", {disagrees} rejected ({ODOMETRY_DISAGREES})" if disagrees else ""
     return (
         f"{stats.accepted} accepted"
         f"{f', {alternatives} of them on a next-best trajectory' if alternatives else ''}"
