@@ -373,6 +373,8 @@ FLOAT_VERIFICATION = [
     "leave_distance_m",
     "heading_drift_deg",
     "heading_drift_deg_per_m",
+    "relocate_spacing_m",
+    "relocate_margin_m",
 ]
 
 

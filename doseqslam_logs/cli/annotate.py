@@ -273,6 +273,7 @@ def _verification_json(result: AnnotateResult) -> dict[str, object] | None:
         "from_alternatives": stats.from_alternatives,
         "rejected_stationary": stats.stationary,
         "rejected_odometry_disagrees": stats.odometry_disagrees,
+        "relocated": stats.relocated,
         "motion_evidence": verification.motion_summary,
         "skipped": stats.skipped,
         "frame_pairs": stats.pairs,

@@ -97,6 +97,13 @@ class VerificationParameters:
     # metric stage assumes, so a long drive's drift is allowed for. 180: off.
     heading_drift_deg: float = 30.0
     heading_drift_deg_per_m: float = 0.45
+    # With a pose topic, where the match's visit has frames over relocate_spacing_m apart (a
+    # low frame rate), the query camera is placed on the visit's path by PnP with the
+    # odometry's baseline (verification.position), and the loop moves to the visit's frame
+    # nearest it when that frame is relocate_margin_m nearer than the bracketed one and passes
+    # the check: between frames a metre apart the bracketing's sign is noisy.
+    relocate_spacing_m: float = 0.5
+    relocate_margin_m: float = 0.5
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
     # the features of these that ORB would keep for their budget (on each pyramid level the
@@ -152,6 +159,9 @@ class VerificationParameters:
             raise ParameterError(
                 f"heading_drift_deg_per_m must be >= 0, got {self.heading_drift_deg_per_m}"
             )
+        for name in ("relocate_spacing_m", "relocate_margin_m"):
+            if not getattr(self, name) >= 0:
+                raise ParameterError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.leave_samples < 1:
             raise ParameterError(f"leave_samples must be >= 1, got {self.leave_samples}")
         if not self.query_interval_s >= 0:

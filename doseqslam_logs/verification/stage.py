@@ -20,7 +20,9 @@ query's place lies beyond the window on the other: the check walks that way (`_w
 stride at a time while the frames pass with a pose, up to WALK_RADII * r past the window, and
 brackets the match where the side changes. Next checks of the sequence follow that offset.
 The walk exists because at a high frame rate a proposed trajectory is often a few seconds off
-along the route, past the window.
+along the route, past the window. With a pose topic, where the match's frames are far apart
+(a low frame rate), an accepted pair then moves to the frame nearest the query camera as PnP
+with the odometry's baseline places it (`_relocated`, verification.position).
 
 When a pair fails and the detector recorded next-best trajectories of the sequence
 (`SequenceDecision.alternatives`), the same query is checked against each of them in turn, at
@@ -105,6 +107,7 @@ from .motion import (
     left_by_images,
 )
 from .params import VerificationParameters
+from .position import nearest_frame, neighbour, neighbours_of, query_position, spacing_m
 
 # Sorted frame indices in, (index, gray frame) out for each of them.
 FrameLoader = Callable[[Sequence[int]], Iterator[tuple[int, GrayImage]]]
@@ -226,6 +229,7 @@ class VerificationStats:
     stationary: int = 0  # candidates rejected by the motion rule (verification.motion)
     odometry_disagrees: int = 0  # candidates whose fit's turn the pose topic's contradicts
     motion_by_images: int = 0  # motion-rule decisions taken on image evidence (no poses)
+    relocated: int = 0  # accepted pairs moved to a nearer frame by their position (position)
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
     frames_loaded: int = 0  # frames decoded for features (re-reads of evicted frames included)
     frames_stored: int = 0  # frames whose features came from `Verifier.stored_features`
@@ -494,6 +498,7 @@ class Verifier:
             if verdict.reason == NOT_BRACKETED:
                 bounds = self._reach(candidate.match_index, database_size)
                 refined, verdict = self._walk(query, window, seen, refined, stride, bounds)
+            refined, verdict = self._relocated(query, window, seen, refined, verdict)
             return PairCheck(candidate, refined, self._moved(query, candidate, refined, verdict))
 
         if stride == 1:
@@ -570,6 +575,7 @@ class Verifier:
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
             refined, verdict = self._bracketed(window, seen, refined, verdict)
+            refined, verdict = self._relocated(query, window, seen, refined, verdict)
             verdict = self._moved(query, rejected.candidate, refined, verdict)
             hopeless = self._hopeless(verdict)
             hopeless_runs[number - 1] = hopeless_runs[number - 1] + 1 if hopeless else 0
@@ -614,6 +620,44 @@ class Verifier:
         if not self._agrees_with_odometry(refined, q, verdict):
             return dataclasses.replace(verdict, accepted=False, reason=ODOMETRY_DISAGREES)
         return verdict
+
+    def _relocated(
+        self,
+        query: FrameFeatures,
+        window: range,
+        seen: dict[int, Verdict],
+        refined: int,
+        verdict: Verdict,
+    ) -> tuple[int, Verdict]:
+        """An accepted pair moved to the frame of the match's visit nearest the query camera,
+        where the visit's frames lie over relocate_spacing_m apart (verification.position):
+        when that frame is relocate_margin_m nearer than `refined` and its own check passes.
+        Unchanged otherwise, and without a pose topic with orientations or intrinsics."""
+        path, params = self.camera_path, self.params
+        if path is None or path.orientations is None or self.intrinsics is None:
+            return refined, verdict
+        spacing = spacing_m(path, refined)
+        if not verdict.accepted or spacing is None or spacing <= params.relocate_spacing_m:
+            return refined, verdict
+        # The visit around the refined match (a walk may have taken it past the window).
+        reach, stop = self.params.refine_radius, max(window.stop, refined + 1)
+        around = range(max(0, refined - reach), min(refined + reach + 1, stop))
+        near = neighbours_of(path, refined, around)
+        if not near:
+            return refined, verdict
+        features = self._features([refined, *near])
+        visit = [neighbour(path, refined, n, features[n]) for n in near]
+        position = query_position(query, features[refined], visit, verdict, self.intrinsics, params)
+        if position is None:
+            return refined, verdict
+        nearest, distance, now = nearest_frame(path, refined, position, around)
+        if nearest == refined or now - distance < params.relocate_margin_m:
+            return refined, verdict
+        self._check_frames(query, [nearest], seen)
+        if not seen[nearest].accepted:
+            return refined, verdict
+        self.stats.relocated += 1
+        return nearest, seen[nearest]
 
     def _agrees_with_odometry(self, match: int, query: int, verdict: Verdict) -> bool:
         """The fit's rotation agrees with the pose topic's turn (True without one, or without

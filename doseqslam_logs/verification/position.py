@@ -1,0 +1,112 @@
+"""Where the query camera stands along the match's visit, where that visit's frames are far
+apart.
+
+The bracketing (`geometry.bracketed_match`) places the query between two frames of the
+earlier visit by the sign of the essential fit's translation, and keeps the one of the two
+whose direction is nearer sideways. At a low frame rate the two are a metre or more apart,
+and with forward motion and distant points that sign is noisy: a pair can end up a whole
+frame from the place (the 1 Hz drive's pair 2.1 m off, its neighbour 1.1 m). There the
+odometry gives what the images lack, a metric baseline: the match's keypoints triangulated
+against its neighbours of the visit (the odometry's relative pose as the baseline) and the
+query's keypoints resected against them (`metric_pose.odometry_pnp`, without its baseline
+refinement: it is a position that is wanted here, not a covariance) put the query camera in
+metres on the visit's path, and the frame of the visit nearest it is the loop's.
+
+At a high frame rate the visit's frames are a few decimetres apart, closer than this
+estimate's error (a few tenths of a metre along the path), and the bracketing's choice is
+kept.
+
+Pure computation: features, poses and parameters in, frame indices out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from .geometry import FrameFeatures, Intrinsics, Verdict
+from .metric_pose import MetricPose, MetricPoseParameters, OdometryNeighbour, odometry_pnp
+from .motion import CameraPath
+from .params import VerificationParameters
+
+# The neighbours of the match the query is resected against: the nearest frame of the
+# visit on each side at least this far from it (the metric stage's shortest baseline).
+BASELINE_M = 1.0
+_PNP = MetricPoseParameters(refine_baselines=False)
+
+
+def spacing_m(path: CameraPath, frame: int) -> float | None:
+    """The mean distance between `frame` and its neighbours of the visit (metres), None
+    where the poses do not cover them."""
+    steps = [
+        float(np.linalg.norm(path.positions[other] - path.positions[frame]))
+        for other in (frame - 1, frame + 1)
+        if path.covers(min(frame, other), max(frame, other))
+    ]
+    return sum(steps) / len(steps) if steps else None
+
+
+def neighbours_of(path: CameraPath, match: int, frames: range) -> list[int]:
+    """On each side of `match` within `frames`, the nearest frame at least BASELINE_M from
+    it along a stretch the poses cover."""
+    chosen: list[int] = []
+    for side in (-1, 1):
+        frame = match + side
+        while frame in frames and path.covers(min(frame, match), max(frame, match)):
+            if np.linalg.norm(path.positions[frame] - path.positions[match]) >= BASELINE_M:
+                chosen.append(frame)
+                break
+            frame += side
+    return chosen
+
+
+def neighbour(
+    path: CameraPath, match: int, other: int, features: FrameFeatures
+) -> OdometryNeighbour:
+    """Frame `other` of the visit with its pose relative to the match's: X_other = R X_match
+    + t (the path must have orientations). No covariance: the baseline is taken as exact,
+    as it is over the metre or two between them."""
+    assert path.orientations is not None
+    at = Rotation.from_quat(path.orientations[match])
+    to = Rotation.from_quat(path.orientations[other])
+    rotation = to.inv() * at
+    translation = to.inv().apply(path.positions[match] - path.positions[other])
+    q = rotation.as_quat()
+    return OdometryNeighbour(
+        features,
+        (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+        (float(translation[0]), float(translation[1]), float(translation[2])),
+    )
+
+
+def query_position(
+    query: FrameFeatures,
+    match: FrameFeatures,
+    neighbours: Sequence[OdometryNeighbour],
+    verdict: Verdict,
+    intrinsics: Intrinsics,
+    params: VerificationParameters,
+) -> npt.NDArray[np.float64] | None:
+    """The query camera's centre in the match camera's frame (metres), None when the PnP
+    does not pass `metric_pose`'s checks (too few points or inliers, a large residual, a
+    rotation far from the essential fit's)."""
+    pose = odometry_pnp(query, match, neighbours, verdict, intrinsics, params, _PNP)
+    if not isinstance(pose, MetricPose) or pose.translation is None:
+        return None
+    return np.asarray(pose.translation, np.float64)
+
+
+def nearest_frame(
+    path: CameraPath, match: int, position: npt.NDArray[np.float64], frames: range
+) -> tuple[int, float, float]:
+    """(the frame of `frames` with a pose nearest the point `position` of the match camera's
+    frame, its distance, the match's distance) in metres."""
+    assert path.orientations is not None
+    world = path.positions[match] + Rotation.from_quat(path.orientations[match]).apply(position)
+    candidates = [f for f in frames if path.covers(f, f)]
+    distances = np.linalg.norm(path.positions[candidates] - world, axis=1)
+    best = int(np.argmin(distances))
+    return candidates[best], float(distances[best]), float(np.linalg.norm(position))
