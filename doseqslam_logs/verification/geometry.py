@@ -393,8 +393,9 @@ def bracketed_match(
 def _crossing(sides: list[int], inliers: list[int]) -> int | None:
     """The sign change i (sides[i] < 0 < sides[i + 1]) that best splits the run into frames
     behind (-1) then ahead (+1): the most frames on their split's side, then the most
-    inliers of the pair; None when no change leaves at most (n - 1) // 4 of the n frames on
-    the wrong side.
+    inliers of the pair, among the changes with more frames on their side than not on each
+    side; None when no such change leaves at most (n - 1) // 4 of the n frames on the wrong
+    side.
 
     The direction of t is least certain where the cameras are closest and the scene is far:
     there one frame's sign can flip, and so can the near-zero signs of the true crossing. A
@@ -413,11 +414,20 @@ def _crossing(sides: list[int], inliers: list[int]) -> int | None:
         if not sides[i] < 0 < sides[i + 1]:
             continue
         ahead_after = ahead_total - ((i + 1) - behind_before[i + 1])
+        # Each side mostly on its side: a flip beside the run's end ("+ - + + +") leaves the
+        # short side half wrong, a sign change that splits nothing.
+        if 2 * behind_before[i + 1] <= i + 1 or 2 * ahead_after <= n - i - 1:
+            continue
         score = (behind_before[i + 1] + ahead_after, inliers[i] + inliers[i + 1], -i)
         best = score if best is None or score > best else best
     if best is None or n - best[0] > (n - 1) // 4:
         return None
     return -best[2]
+
+
+def turned_too_far(limit_deg: float) -> str:
+    """The reason of a pair rejected for a rotation over `limit_deg`."""
+    return f"rotation over {limit_deg:g} deg"
 
 
 def side_of_query(verdict: Verdict) -> int:
@@ -575,7 +585,7 @@ def _essential_verdict(
         return verdict
     posed = _with_pose(verdict, np.asarray(essential[:3], np.float64), p_query, p_match, k, mask)
     if posed.rotation_deg is not None and posed.rotation_deg > params.max_rotation_deg:
-        reason = f"rotation over {params.max_rotation_deg:g} deg"
+        reason = turned_too_far(params.max_rotation_deg)
         return dataclasses.replace(posed, accepted=False, reason=reason)
     return _with_points(posed, p_query, p_match, mask)
 
