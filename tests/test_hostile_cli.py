@@ -375,6 +375,8 @@ FLOAT_VERIFICATION = [
     "heading_drift_deg_per_m",
     "relocate_spacing_m",
     "relocate_margin_m",
+    "confirmed_rotation_deg",
+    "confirm_distance_m",
 ]
 
 

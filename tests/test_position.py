@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from detector_helpers import sequence_decision
 from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -21,7 +22,7 @@ from doseqslam_logs.cli.main import main
 from doseqslam_logs.sources import opened
 from doseqslam_logs.sources.camera_info import find_camera_info
 from doseqslam_logs.sources.images import decode_gray
-from doseqslam_logs.verification import DEFAULT_VERIFICATION
+from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier
 from doseqslam_logs.verification.geometry import Intrinsics, extract_features, verify_pair
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
 from doseqslam_logs.verification.motion import CameraPath
@@ -85,12 +86,16 @@ def test_the_nearest_frame_is_the_one_nearest_the_point_ahead(n, step, data) -> 
     assert at_match == pytest.approx(abs(ahead))
 
 
-@given(st.integers(3, 40), st.floats(0.05, 1.5), st.data())
+# Steps whose multiples are exact in binary: the baseline is met exactly, not by a rounding.
+exact_steps = st.sampled_from([0.0625, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0, 1.5])
+
+
+@given(st.integers(3, 40), exact_steps, st.data())
 def test_neighbours_are_the_nearest_frames_a_baseline_away_on_each_side(n, step, data) -> None:
     path = _straight_path(n, step)
     match = data.draw(st.integers(0, n - 1))
     near = neighbours_of(path, match, range(n))
-    gap = int(np.ceil(BASELINE_M / step - 1e-9))
+    gap = int(np.ceil(BASELINE_M / step))
     expected = [f for f in (match - gap, match + gap) if 0 <= f < n]
     assert near == expected
     assert spacing_m(path, match) == pytest.approx(step)
@@ -122,16 +127,20 @@ def _truth(cell: Path) -> CameraPath:
     return CameraPath("/truth", positions, np.ones(len(poses), bool), orientations)
 
 
-def test_the_pnp_places_the_query_nearer_the_frame_the_truth_puts_it_nearer(one_hz) -> None:
-    """Query 146 of the 1 Hz cell, bracketed at frame 29 (2.10 m off): resected against frame
-    29's points triangulated with frames 28 and 30, it is nearest frame 28 (1.11 m off)."""
-    log = one_hz / "1Hz.ros2.mcap"
-    wanted = {QUERY, BRACKETED, BRACKETED - 1, BRACKETED + 1}
+def _frames_and_camera(cell: Path) -> tuple[list[np.ndarray], Intrinsics]:
+    log = cell / "1Hz.ros2.mcap"
     with opened(log) as source:
         frames = [decode_gray(m) for m in source.image_messages(CAMERA)]
     info = find_camera_info(log, CAMERA).info
     assert info is not None
-    intrinsics = Intrinsics(info.fx, info.fy, info.cx, info.cy)
+    return frames, Intrinsics(info.fx, info.fy, info.cx, info.cy)
+
+
+def test_the_pnp_places_the_query_nearer_the_frame_the_truth_puts_it_nearer(one_hz) -> None:
+    """Query 146 of the 1 Hz cell, bracketed at frame 29 (2.10 m off): resected against frame
+    29's points triangulated with frames 28 and 30, it is nearest frame 28 (1.11 m off)."""
+    wanted = {QUERY, BRACKETED, BRACKETED - 1, BRACKETED + 1}
+    frames, intrinsics = _frames_and_camera(one_hz)
     features = {i: extract_features(frames[i], DEFAULT_VERIFICATION) for i in wanted}
     path = _truth(one_hz)
     truth = path.positions
@@ -154,6 +163,34 @@ def test_the_pnp_places_the_query_nearer_the_frame_the_truth_puts_it_nearer(one_
     frame, distance, at_match = nearest_frame(path, BRACKETED, position, visit)
     assert frame == NEARER
     assert at_match - distance >= DEFAULT_VERIFICATION.relocate_margin_m
+
+
+def test_a_pair_turned_past_the_limit_is_kept_where_the_odometry_places_it(one_hz) -> None:
+    """Query 148 of the 1 Hz cell against frame 30: 0.67 m apart and turned 12 degrees, past
+    max_rotation_deg. Placed by PnP within confirm_distance_m, it is kept; without a pose
+    topic, or with odometry whose metres are 4 times too long (the query then placed about
+    2 m off), it is rejected for its rotation, as before the rule."""
+    frames, intrinsics = _frames_and_camera(one_hz)
+    decision = sequence_decision(1, 10**9, 1, first=148, match=30, database_size=120)
+
+    def verified(path: CameraPath | None) -> tuple[int, float | None, str]:
+        def load(indices):
+            return ((i, frames[i]) for i in indices)
+
+        verifier = Verifier(DEFAULT_VERIFICATION, load, intrinsics, camera_path=path)
+        (check,) = verifier.verify(decision).checks
+        verdict = check.verdict
+        return check.refined_match_index, verdict.rotation_deg, verdict.reason
+
+    limit = DEFAULT_VERIFICATION.max_rotation_deg
+    truth = _truth(one_hz)
+    frame, rotation, reason = verified(truth)
+    assert reason == "accepted" and rotation is not None
+    assert limit < rotation <= DEFAULT_VERIFICATION.confirmed_rotation_deg
+    assert np.linalg.norm(truth.positions[148] - truth.positions[frame]) < 1.0
+    assert verified(None)[2] == f"rotation over {limit:g} deg"
+    stretched = replace(truth, positions=4 * truth.positions)
+    assert verified(stretched)[2] == f"rotation over {limit:g} deg"
 
 
 @pytest.mark.slow

@@ -28,7 +28,7 @@ from doseqslam_logs.sources.rosbags_source import RosbagsSource
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 ROS2 = SAMPLES / "drive_loops.ros2.mcap"
 # Loop closures the `annotate` defaults report on it (README).
-LOOPS = 64
+LOOPS = 77
 MATCH = "/doseqslam/match/image/compressed"
 TEXTS = "/doseqslam/match/annotations"
 MARKERS = "/doseqslam/markers"
@@ -37,7 +37,7 @@ LOOP_LINES = "/doseqslam/loop_lines"
 CURRENT_POSE = "/doseqslam/current_pose"
 # The first camera frames that are no query, at the start and after each run of loop closures
 # (the "no loop" messages, tests/test_visualization_between_loops.py).
-NO_LOOPS = 12
+NO_LOOPS = 10
 NO_VERIFY = AnnotateOptions(verification=None)
 
 

@@ -104,6 +104,14 @@ class VerificationParameters:
     # the check: between frames a metre apart the bracketing's sign is noisy.
     relocate_spacing_m: float = 0.5
     relocate_margin_m: float = 0.5
+    # With a pose topic, a pair turned more than max_rotation_deg, up to
+    # confirmed_rotation_deg, is accepted when that PnP places the query within
+    # confirm_distance_m of the refined match, and rejected for its rotation as without a
+    # pose topic otherwise: at larger turns a few more look-alikes metres along the route pass
+    # the fit, and the odometry's metric baseline tells them apart. 15 deg keeps a margin under
+    # the ground truth's 20 (the fit's rotation is off by degrees at 30-50 inliers).
+    confirmed_rotation_deg: float = 15.0
+    confirm_distance_m: float = 1.5
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
     # the features of these that ORB would keep for their budget (on each pyramid level the
@@ -159,7 +167,11 @@ class VerificationParameters:
             raise ParameterError(
                 f"heading_drift_deg_per_m must be >= 0, got {self.heading_drift_deg_per_m}"
             )
-        for name in ("relocate_spacing_m", "relocate_margin_m"):
+        if not 0 < self.confirmed_rotation_deg <= 180:
+            raise ParameterError(
+                f"confirmed_rotation_deg must be in (0, 180], got {self.confirmed_rotation_deg}"
+            )
+        for name in ("relocate_spacing_m", "relocate_margin_m", "confirm_distance_m"):
             if not getattr(self, name) >= 0:
                 raise ParameterError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.leave_samples < 1:

@@ -96,6 +96,7 @@ from .geometry import (
     extract_features,
     pair_min_inliers,
     side_of_query,
+    turned_too_far,
     verify_pair,
 )
 from .motion import (
@@ -313,6 +314,17 @@ class Verifier:
 
     def __post_init__(self) -> None:
         self._cache = FeatureCache(self.cache_bytes)
+        # The fit's own rotation limit: confirmed_rotation_deg where a pose topic can confirm
+        # the pairs turned past max_rotation_deg (`_placed_by_odometry`).
+        self._fit_params = self.params
+        limit = self.params.confirmed_rotation_deg
+        if self._can_place() and limit > self.params.max_rotation_deg:
+            self._fit_params = dataclasses.replace(self.params, max_rotation_deg=limit)
+
+    def _can_place(self) -> bool:
+        """A pose topic with orientations and intrinsics: the query can be placed by PnP."""
+        path = self.camera_path
+        return path is not None and path.orientations is not None and self.intrinsics is not None
 
     def verify_all(self, decisions: Iterable[SequenceDecision]) -> list[VerifiedDecision]:
         """Each decision in turn, each handed the one before's `hint` (as the threads of
@@ -498,7 +510,7 @@ class Verifier:
             if verdict.reason == NOT_BRACKETED:
                 bounds = self._reach(candidate.match_index, database_size)
                 refined, verdict = self._walk(query, window, seen, refined, stride, bounds)
-            refined, verdict = self._relocated(query, window, seen, refined, verdict)
+            refined, verdict = self._placed_by_odometry(query, window, seen, refined, verdict)
             return PairCheck(candidate, refined, self._moved(query, candidate, refined, verdict))
 
         if stride == 1:
@@ -575,7 +587,7 @@ class Verifier:
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
             refined, verdict = self._bracketed(window, seen, refined, verdict)
-            refined, verdict = self._relocated(query, window, seen, refined, verdict)
+            refined, verdict = self._placed_by_odometry(query, window, seen, refined, verdict)
             verdict = self._moved(query, rejected.candidate, refined, verdict)
             hopeless = self._hopeless(verdict)
             hopeless_runs[number - 1] = hopeless_runs[number - 1] + 1 if hopeless else 0
@@ -621,7 +633,7 @@ class Verifier:
             return dataclasses.replace(verdict, accepted=False, reason=ODOMETRY_DISAGREES)
         return verdict
 
-    def _relocated(
+    def _placed_by_odometry(
         self,
         query: FrameFeatures,
         window: range,
@@ -629,35 +641,51 @@ class Verifier:
         refined: int,
         verdict: Verdict,
     ) -> tuple[int, Verdict]:
-        """An accepted pair moved to the frame of the match's visit nearest the query camera,
-        where the visit's frames lie over relocate_spacing_m apart (verification.position):
-        when that frame is relocate_margin_m nearer than `refined` and its own check passes.
-        Unchanged otherwise, and without a pose topic with orientations or intrinsics."""
+        """An accepted pair as the query's position by PnP with the odometry's baseline leaves
+        it (verification.position): where the visit's frames lie over relocate_spacing_m apart,
+        moved to the visit's frame nearest the query camera when that frame is
+        relocate_margin_m nearer and its own check passes; turned past max_rotation_deg (up to
+        confirmed_rotation_deg), rejected for its rotation unless placed within
+        confirm_distance_m of its match. Unchanged without a pose topic or intrinsics."""
         path, params = self.camera_path, self.params
-        if path is None or path.orientations is None or self.intrinsics is None:
+        if not verdict.accepted or not self._can_place():
             return refined, verdict
+        assert path is not None and self.intrinsics is not None
+        turned = verdict.rotation_deg is not None and verdict.rotation_deg > params.max_rotation_deg
         spacing = spacing_m(path, refined)
-        if not verdict.accepted or spacing is None or spacing <= params.relocate_spacing_m:
+        spaced = spacing is not None and spacing > params.relocate_spacing_m
+        if not turned and not spaced:
             return refined, verdict
         # The visit around the refined match (a walk may have taken it past the window).
-        reach, stop = self.params.refine_radius, max(window.stop, refined + 1)
+        reach, stop = params.refine_radius, max(window.stop, refined + 1)
         around = range(max(0, refined - reach), min(refined + reach + 1, stop))
         near = neighbours_of(path, refined, around)
-        if not near:
-            return refined, verdict
         features = self._features([refined, *near])
         visit = [neighbour(path, refined, n, features[n]) for n in near]
-        position = query_position(query, features[refined], visit, verdict, self.intrinsics, params)
+        position = None
+        if visit:
+            position = query_position(
+                query, features[refined], visit, verdict, self.intrinsics, params
+            )
         if position is None:
-            return refined, verdict
+            return refined, self._turned(verdict) if turned else verdict
         nearest, distance, now = nearest_frame(path, refined, position, around)
-        if nearest == refined or now - distance < params.relocate_margin_m:
-            return refined, verdict
-        self._check_frames(query, [nearest], seen)
-        if not seen[nearest].accepted:
-            return refined, verdict
-        self.stats.relocated += 1
-        return nearest, seen[nearest]
+        if spaced and nearest != refined and now - distance >= params.relocate_margin_m:
+            self._check_frames(query, [nearest], seen)
+            if seen[nearest].accepted:
+                self.stats.relocated += 1
+                refined, verdict, now = nearest, seen[nearest], distance
+                turned = verdict.rotation_deg is not None and (
+                    verdict.rotation_deg > params.max_rotation_deg
+                )
+        if turned and now > params.confirm_distance_m:
+            return refined, self._turned(verdict)
+        return refined, verdict
+
+    def _turned(self, verdict: Verdict) -> Verdict:
+        """Rejected for its rotation, as the fit rejects it without a pose topic."""
+        reason = turned_too_far(self.params.max_rotation_deg)
+        return dataclasses.replace(verdict, accepted=False, reason=reason)
 
     def _agrees_with_odometry(self, match: int, query: int, verdict: Verdict) -> bool:
         """The fit's rotation agrees with the pose topic's turn (True without one, or without
@@ -729,7 +757,8 @@ class Verifier:
         verdicts = []
         for m in frames:
             self._check_cancelled()
-            verdicts.append((m, verify_pair(query, features[m], self.params, self.intrinsics)))
+            verdict = verify_pair(query, features[m], self._fit_params, self.intrinsics)
+            verdicts.append((m, verdict))
         self.stats.pairs_s += time.perf_counter() - start
         self.stats.pairs += len(verdicts)
         return verdicts
