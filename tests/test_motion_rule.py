@@ -202,7 +202,8 @@ def test_a_look_alike_the_odometry_turned_away_from_is_rejected(shared_data) -> 
     assert reasons.count(ODOMETRY_DISAGREES) == accepted
     summary = verification_summary(stats, 1.0, "essential")
     assert f"{accepted} rejected (odometry disagrees)" in summary
-    assert verified(95.0, 1.0)[0].accepted_pairs == accepted
+    # Over 185 m the turn is within the drift allowed: the pairs kept with no turn are kept.
+    assert verified(95.0, 1.0)[0].accepted_pairs == verified(0.0, 1.0)[0].accepted_pairs
     off = DEFAULT_VERIFICATION.replace(heading_drift_deg=180.0)
     assert verified(95.0, 0.2, off)[0].accepted_pairs == accepted
 

@@ -23,7 +23,12 @@ from doseqslam_logs.sources import opened
 from doseqslam_logs.sources.camera_info import find_camera_info
 from doseqslam_logs.sources.images import decode_gray
 from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier
-from doseqslam_logs.verification.geometry import Intrinsics, extract_features, verify_pair
+from doseqslam_logs.verification.geometry import (
+    NOT_BRACKETED,
+    Intrinsics,
+    extract_features,
+    verify_pair,
+)
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
 from doseqslam_logs.verification.motion import CameraPath
 from doseqslam_logs.verification.position import (
@@ -41,6 +46,7 @@ CAMERA = "/camera/image/compressed"
 # The matrix's 1 Hz cell, seed 1: query 146 was bracketed at frame 29, 2.10 m from it (the
 # ground truth's radius is 2 m); frame 28 is 1.11 m from it.
 ONE_HZ = replace(matrix.BASE, name="1Hz", rate=1.0, seed=1)
+TWO_HZ = replace(matrix.BASE, name="2Hz", rate=2.0, seed=1)
 QUERY, BRACKETED, NEARER = 146, 29, 28
 
 unit_quaternions = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
@@ -116,9 +122,9 @@ def one_hz(tmp_path_factory) -> Path:
     return out
 
 
-def _truth(cell: Path) -> CameraPath:
+def _truth(cell: Path, name: str = "1Hz") -> CameraPath:
     """The generator's poses as the camera path (an odometry without drift)."""
-    with open(cell / "1Hz.poses.csv") as file:
+    with open(cell / f"{name}.poses.csv") as file:
         rows = [(float(r["x"]), float(r["y"]), float(r["yaw"])) for r in csv.DictReader(file)]
     poses = np.asarray(rows)
     positions = np.column_stack([poses[:, :2], np.zeros(len(poses))])
@@ -127,8 +133,8 @@ def _truth(cell: Path) -> CameraPath:
     return CameraPath("/truth", positions, np.ones(len(poses), bool), orientations)
 
 
-def _frames_and_camera(cell: Path) -> tuple[list[np.ndarray], Intrinsics]:
-    log = cell / "1Hz.ros2.mcap"
+def _frames_and_camera(cell: Path, name: str = "1Hz") -> tuple[list[np.ndarray], Intrinsics]:
+    log = cell / f"{name}.ros2.mcap"
     with opened(log) as source:
         frames = [decode_gray(m) for m in source.image_messages(CAMERA)]
     info = find_camera_info(log, CAMERA).info
@@ -191,6 +197,34 @@ def test_a_pair_turned_past_the_limit_is_kept_where_the_odometry_places_it(one_h
     assert verified(None)[2] == f"rotation over {limit:g} deg"
     stretched = replace(truth, positions=4 * truth.positions)
     assert verified(stretched)[2] == f"rotation over {limit:g} deg"
+
+
+def test_a_revisit_of_the_first_frames_is_placed_where_it_cannot_be_bracketed(
+    tmp_path,
+) -> None:
+    """Query 234 of the 2 Hz cell revisits frame 0: no frame of the visit lies before the
+    place, so every verified frame sees the match camera on one side and the pair is not
+    bracketed. Placed by PnP with the odometry within confirm_distance_m of frame 0, it is
+    accepted there; without a pose topic, or with `place_unbracketed` off, it is not."""
+    gen.generate(TWO_HZ, tmp_path, jobs=1, progress=False)
+    frames, intrinsics = _frames_and_camera(tmp_path, "2Hz")
+    truth = _truth(tmp_path, "2Hz")
+    decision = sequence_decision(1, 5 * 10**8, 1, first=234, match=0, database_size=200)
+
+    def verified(path: CameraPath | None, params=DEFAULT_VERIFICATION) -> tuple[int, str]:
+        def load(indices):
+            return ((i, frames[i]) for i in indices)
+
+        verifier = Verifier(params, load, intrinsics, camera_path=path)
+        (check,) = verifier.verify(decision).checks
+        return check.refined_match_index, check.verdict.reason
+
+    frame, reason = verified(truth)
+    assert reason == "accepted"
+    assert np.linalg.norm(truth.positions[234] - truth.positions[frame]) < 2.0
+    assert verified(None)[1] == NOT_BRACKETED
+    off = DEFAULT_VERIFICATION.replace(place_unbracketed=False)
+    assert verified(truth, off)[1] == NOT_BRACKETED
 
 
 @pytest.mark.slow

@@ -274,6 +274,7 @@ def _verification_json(result: AnnotateResult) -> dict[str, object] | None:
         "rejected_stationary": stats.stationary,
         "rejected_odometry_disagrees": stats.odometry_disagrees,
         "relocated": stats.relocated,
+        "placed_unbracketed": stats.placed,
         "motion_evidence": verification.motion_summary,
         "skipped": stats.skipped,
         "frame_pairs": stats.pairs,

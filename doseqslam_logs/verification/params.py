@@ -112,6 +112,11 @@ class VerificationParameters:
     # the ground truth's 20 (the fit's rotation is off by degrees at 30-50 inliers).
     confirmed_rotation_deg: float = 15.0
     confirm_distance_m: float = 1.5
+    # With a pose topic, a pair whose fit passed but that is not bracketed (every verified
+    # frame on one side of the query: a revisit of the visit's first frames, a window or walk
+    # that stops short of the place) is accepted at the visit's frame that PnP places the
+    # query nearest, when within confirm_distance_m and its own check passes.
+    place_unbracketed: bool = True
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
     # the features of these that ORB would keep for their budget (on each pyramid level the

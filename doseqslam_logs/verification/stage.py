@@ -22,7 +22,9 @@ brackets the match where the side changes. Next checks of the sequence follow th
 The walk exists because at a high frame rate a proposed trajectory is often a few seconds off
 along the route, past the window. With a pose topic, where the match's frames are far apart
 (a low frame rate), an accepted pair then moves to the frame nearest the query camera as PnP
-with the odometry's baseline places it (`_relocated`, verification.position).
+with the odometry's baseline places it; a pair turned past max_rotation_deg is kept only where
+that places it near its match, and one not bracketed is accepted where it places it
+(`_placed_by_odometry`, verification.position).
 
 When a pair fails and the detector recorded next-best trajectories of the sequence
 (`SequenceDecision.alternatives`), the same query is checked against each of them in turn, at
@@ -231,6 +233,7 @@ class VerificationStats:
     odometry_disagrees: int = 0  # candidates whose fit's turn the pose topic's contradicts
     motion_by_images: int = 0  # motion-rule decisions taken on image evidence (no poses)
     relocated: int = 0  # accepted pairs moved to a nearer frame by their position (position)
+    placed: int = 0  # pairs not bracketed, accepted where their position puts them (position)
     pairs: int = 0  # verify_pair calls (a candidate costs up to 2r + 1)
     frames_loaded: int = 0  # frames decoded for features (re-reads of evicted frames included)
     frames_stored: int = 0  # frames whose features came from `Verifier.stored_features`
@@ -641,20 +644,32 @@ class Verifier:
         refined: int,
         verdict: Verdict,
     ) -> tuple[int, Verdict]:
-        """An accepted pair as the query's position by PnP with the odometry's baseline leaves
-        it (verification.position): where the visit's frames lie over relocate_spacing_m apart,
-        moved to the visit's frame nearest the query camera when that frame is
-        relocate_margin_m nearer and its own check passes; turned past max_rotation_deg (up to
-        confirmed_rotation_deg), rejected for its rotation unless placed within
-        confirm_distance_m of its match. Unchanged without a pose topic or intrinsics."""
+        """A checked pair as the query's position by PnP with the odometry's baseline leaves
+        it (verification.position). Accepted, where the visit's frames lie over
+        relocate_spacing_m apart: moved to the visit's frame nearest the query camera when
+        that frame is relocate_margin_m nearer and its own check passes. Accepted and turned
+        past max_rotation_deg (up to confirmed_rotation_deg): rejected for its rotation
+        unless placed within confirm_distance_m of its match. Not bracketed, its fit passed
+        and not turned: accepted at the visit's frame nearest the query when that is within
+        confirm_distance_m, passes and is not turned either (`place_unbracketed`; one
+        relaxation a pair: each lets a few look-alikes through). Unchanged without a pose
+        topic or intrinsics."""
         path, params = self.camera_path, self.params
-        if not verdict.accepted or not self._can_place():
+        if not self._can_place():
             return refined, verdict
         assert path is not None and self.intrinsics is not None
-        turned = verdict.rotation_deg is not None and verdict.rotation_deg > params.max_rotation_deg
+        unbracketed = (
+            params.place_unbracketed and verdict.reason == NOT_BRACKETED and seen[refined].accepted
+        )
+        if not verdict.accepted and not unbracketed:
+            return refined, verdict
+        fitted = seen[refined] if unbracketed else verdict
+        turned = self._is_turned(fitted)
+        if unbracketed and turned:  # one relaxation a pair: a turned pair must be bracketed
+            return refined, verdict
         spacing = spacing_m(path, refined)
         spaced = spacing is not None and spacing > params.relocate_spacing_m
-        if not turned and not spaced:
+        if not turned and not spaced and not unbracketed:
             return refined, verdict
         # The visit around the refined match (a walk may have taken it past the window).
         reach, stop = params.refine_radius, max(window.stop, refined + 1)
@@ -665,22 +680,33 @@ class Verifier:
         position = None
         if visit:
             position = query_position(
-                query, features[refined], visit, verdict, self.intrinsics, params
+                query, features[refined], visit, fitted, self.intrinsics, params
             )
         if position is None:
-            return refined, self._turned(verdict) if turned else verdict
+            return refined, self._turned(verdict) if turned and not unbracketed else verdict
         nearest, distance, now = nearest_frame(path, refined, position, around)
+        if unbracketed:
+            if distance > params.confirm_distance_m:
+                return refined, verdict
+            self._check_frames(query, [nearest], seen)
+            if not seen[nearest].accepted or self._is_turned(seen[nearest]):
+                return refined, verdict
+            self.stats.placed += 1
+            return nearest, seen[nearest]
         if spaced and nearest != refined and now - distance >= params.relocate_margin_m:
             self._check_frames(query, [nearest], seen)
             if seen[nearest].accepted:
                 self.stats.relocated += 1
                 refined, verdict, now = nearest, seen[nearest], distance
-                turned = verdict.rotation_deg is not None and (
-                    verdict.rotation_deg > params.max_rotation_deg
-                )
+                turned = self._is_turned(verdict)
         if turned and now > params.confirm_distance_m:
             return refined, self._turned(verdict)
         return refined, verdict
+
+    def _is_turned(self, verdict: Verdict) -> bool:
+        """Turned past max_rotation_deg (accepted by the fit only up to confirmed_rotation_deg)."""
+        rotation = verdict.rotation_deg
+        return rotation is not None and rotation > self.params.max_rotation_deg
 
     def _turned(self, verdict: Verdict) -> Verdict:
         """Rejected for its rotation, as the fit rejects it without a pose topic."""
