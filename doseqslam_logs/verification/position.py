@@ -1,20 +1,21 @@
-"""Where the query camera stands along the match's visit, where that visit's frames are far
-apart.
+"""Where the query camera stands along the match's visit, from the odometry.
 
-The bracketing (`geometry.bracketed_match`) places the query between two frames of the
-earlier visit by the sign of the essential fit's translation, and keeps the one of the two
-whose direction is nearer sideways. At a low frame rate the two are a metre or more apart,
-and with forward motion and distant points that sign is noisy: a pair can end up a whole
-frame from the place (the 1 Hz drive's pair 2.1 m off, its neighbour 1.1 m). There the
-odometry gives what the images lack, a metric baseline: the match's keypoints triangulated
-against its neighbours of the visit (the odometry's relative pose as the baseline) and the
-query's keypoints resected against them (`metric_pose.odometry_pnp`, without its baseline
-refinement: it is a position that is wanted here, not a covariance) put the query camera in
-metres on the visit's path, and the frame of the visit nearest it is the loop's.
+The essential fit gives the direction of the query camera seen from the match, not its
+distance, and the bracketing (`geometry.bracketed_match`) reads where along the visit the
+query lies from that direction's sign, which forward motion and distant points make noisy.
+A pose topic gives what the images lack, a metric baseline: the match's keypoints
+triangulated against its neighbours of the visit (the odometry's relative pose as the
+baseline) and the query's keypoints resected against them (`metric_pose.odometry_pnp`,
+without its baseline refinement: it is a position that is wanted here, not a covariance)
+put the query camera in metres on the visit's path.
 
-At a high frame rate the visit's frames are a few decimetres apart, closer than this
-estimate's error (a few tenths of a metre along the path), and the bracketing's choice is
-kept.
+The verification stage uses it three ways (`Verifier._placed_by_odometry`): where the
+visit's frames lie a metre or so apart (a low frame rate), the pair moves to the visit's
+frame nearest the query, as the bracketing's pick between two such frames can be the wrong
+one; a pair turned past max_rotation_deg is kept only where the query is placed near its
+match; a pair that is not bracketed is accepted where the query is placed. At a high frame
+rate the visit's frames are a few decimetres apart, closer than this estimate's error along
+the path, and the bracketing's pick stays.
 
 Pure computation: features, poses and parameters in, frame indices out.
 """
