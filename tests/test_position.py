@@ -239,6 +239,6 @@ def test_the_one_hz_cell_reports_no_false_pair(one_hz, tmp_path) -> None:
     gt = np.load(one_hz / "1Hz.gt.npz")["gt"].astype(bool)
     gt |= gt.T
     reported = read_annotations(out).reported_loop_closures
-    assert len(reported) >= 60  # 75 measured
+    assert len(reported) >= 60  # 92 measured
     assert [lc for lc in reported if not gt[lc.query.index, lc.matched.index]] == []
-    assert moved >= 1  # 1 measured: the pair above
+    assert moved >= 1  # 4 measured, the pair above among them
