@@ -159,12 +159,9 @@ class OdometryFrames:
         """The positions and orientations at the frames, for verification's motion rule."""
         return CameraPath(self.topic, self.positions, self.valid, self.rotations.as_quat())
 
-    def relative(self, match: int, neighbour: int) -> tuple[Rotation, F64]:
-        """(R, t) with X_neighbour = R X_match + t (the core's `OdometryNeighbour`)."""
-        inverse = self.rotations[neighbour].inv()
-        rotation = inverse * self.rotations[match]
-        translation = inverse.apply(self.positions[match] - self.positions[neighbour])
-        return rotation, np.asarray(translation, np.float64)
+    def pose(self, frame: int) -> tuple[Rotation, F64]:
+        """The camera pose (R, p) at the frame: X_world = R X + p."""
+        return self.rotations[frame], self.positions[frame]
 
     def neighbours(self, match: int) -> list[int]:
         """On each side of `match`, the nearest frame at least each of NEIGHBOUR_BASELINES_M
@@ -328,14 +325,8 @@ class _Fitter:
 
     def _neighbour(self, match: int, neighbour: int, features: FrameFeatures) -> OdometryNeighbour:
         assert self.odometry is not None
-        rotation, translation = self.odometry.relative(match, neighbour)
-        q = rotation.as_quat()
-        return OdometryNeighbour(
-            features,
-            (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-            (float(translation[0]), float(translation[1]), float(translation[2])),
-            odometry_covariance(translation),
-        )
+        poses = self.odometry.pose(match), self.odometry.pose(neighbour)
+        return OdometryNeighbour.between(features, *poses, odometry_covariance)
 
     def _no_odometry(self) -> str:
         if self.odometry is None:

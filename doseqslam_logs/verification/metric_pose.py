@@ -203,6 +203,37 @@ class OdometryNeighbour:
     translation: tuple[float, float, float]
     covariance: F64 | None = None
 
+    @classmethod
+    def between(
+        cls,
+        features: FrameFeatures,
+        match: tuple[Rotation, F64],
+        neighbour: tuple[Rotation, F64],
+        covariance: Callable[[F64], F64] | None = None,
+    ) -> OdometryNeighbour:
+        """The neighbour whose camera pose (R, p: X_world = R X + p) is `neighbour`, relative
+        to the match camera's `match`; `covariance(t)`, when given, is the odometry's over
+        the baseline t."""
+        rotation, translation = relative_pose(match, neighbour)
+        q = rotation.as_quat()
+        return cls(
+            features,
+            (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+            (float(translation[0]), float(translation[1]), float(translation[2])),
+            None if covariance is None else covariance(translation),
+        )
+
+
+def relative_pose(
+    match: tuple[Rotation, F64], neighbour: tuple[Rotation, F64]
+) -> tuple[Rotation, F64]:
+    """(R, t) with X_neighbour = R X_match + t, from the two camera poses (R_i, p_i) with
+    X_world = R_i X_i + p_i."""
+    (at, at_position), (to, to_position) = match, neighbour
+    inverse = to.inv()
+    translation = inverse.apply(at_position - to_position)
+    return inverse * at, np.asarray(translation, np.float64)
+
 
 def metric_pose(
     query: FrameFeatures,

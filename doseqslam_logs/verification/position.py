@@ -71,16 +71,12 @@ def neighbour(
     + t (the path must have orientations). No covariance: the baseline is taken as exact,
     as it is over the metre or two between them."""
     assert path.orientations is not None
-    at = Rotation.from_quat(path.orientations[match])
-    to = Rotation.from_quat(path.orientations[other])
-    rotation = to.inv() * at
-    translation = to.inv().apply(path.positions[match] - path.positions[other])
-    q = rotation.as_quat()
-    return OdometryNeighbour(
-        features,
-        (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-        (float(translation[0]), float(translation[1]), float(translation[2])),
-    )
+    orientations, positions = path.orientations, path.positions
+
+    def pose(frame: int) -> tuple[Rotation, npt.NDArray[np.float64]]:
+        return Rotation.from_quat(orientations[frame]), positions[frame]
+
+    return OdometryNeighbour.between(features, pose(match), pose(other))
 
 
 def query_position(

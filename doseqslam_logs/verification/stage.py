@@ -675,10 +675,10 @@ class Verifier:
         reach, stop = params.refine_radius, max(window.stop, refined + 1)
         around = range(max(0, refined - reach), min(refined + reach + 1, stop))
         near = neighbours_of(path, refined, around)
-        features = self._features([refined, *near])
-        visit = [neighbour(path, refined, n, features[n]) for n in near]
         position = None
-        if visit:
+        if near:  # else no baseline: nothing to triangulate, no frame to load
+            features = self._features([refined, *near])
+            visit = [neighbour(path, refined, n, features[n]) for n in near]
             position = query_position(
                 query, features[refined], visit, fitted, self.intrinsics, params
             )

@@ -56,6 +56,7 @@ from doseqslam_logs.verification.metric_pose import (
     MetricPoseParameters,
     OdometryNeighbour,
     metric_pose,
+    relative_pose,
 )
 
 F64 = npt.NDArray[np.float64]
@@ -76,9 +77,7 @@ class CameraPose:
 
     def relative_to(self, other: CameraPose) -> tuple[Rotation, F64]:
         """(R, t) with X_other = R X_self + t (the metric pose's convention, self = query)."""
-        rotation = other.rotation.inv() * self.rotation
-        translation = other.rotation.inv().apply(self.position - other.position)
-        return rotation, np.asarray(translation, np.float64)
+        return relative_pose((self.rotation, self.position), (other.rotation, other.position))
 
 
 @dataclass(frozen=True)
