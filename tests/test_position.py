@@ -15,6 +15,7 @@ import pytest
 from detector_helpers import sequence_decision
 from hypothesis import given
 from hypothesis import strategies as st
+from numpy.linalg import norm
 from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import read_annotations
@@ -22,17 +23,18 @@ from doseqslam_logs.cli.main import main
 from doseqslam_logs.sources import opened
 from doseqslam_logs.sources.camera_info import find_camera_info
 from doseqslam_logs.sources.images import decode_gray
-from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier
+from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier, stage
 from doseqslam_logs.verification.geometry import (
     NOT_BRACKETED,
     Intrinsics,
+    Verdict,
     extract_features,
     verify_pair,
 )
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
 from doseqslam_logs.verification.motion import CameraPath
 from doseqslam_logs.verification.position import (
-    BASELINE_M,
+    BASELINES_M,
     nearest_frame,
     neighbour,
     neighbours_of,
@@ -101,8 +103,12 @@ def test_neighbours_are_the_nearest_frames_a_baseline_away_on_each_side(n, step,
     path = _straight_path(n, step)
     match = data.draw(st.integers(0, n - 1))
     near = neighbours_of(path, match, range(n))
-    gap = int(np.ceil(BASELINE_M / step))
-    expected = [f for f in (match - gap, match + gap) if 0 <= f < n]
+    expected: list[int] = []
+    for side in (-1, 1):
+        for baseline in BASELINES_M:  # the frames ceil(b / step) away, each once
+            frame = match + side * int(np.ceil(baseline / step))
+            if 0 <= frame < n and frame not in expected:
+                expected.append(frame)
     assert near == expected
     assert spacing_m(path, match) == pytest.approx(step)
 
@@ -111,8 +117,16 @@ def test_frames_without_a_pose_are_neither_neighbours_nor_spacing() -> None:
     valid = np.ones(10, bool)
     valid[3] = False
     path = _straight_path(10, 0.6, valid)
-    assert neighbours_of(path, 5, range(10)) == [7]  # frame 3 has no pose: the left is cut
+    # Frame 3 has no pose: the left is cut; on the right, 1.2 m and 2.4 m away.
+    assert neighbours_of(path, 5, range(10)) == [7, 9]
     assert spacing_m(path, 4) == pytest.approx(0.6)  # its step towards frame 3 is left out
+
+
+@pytest.fixture(scope="module")
+def two_hz(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("two_hz")
+    gen.generate(TWO_HZ, out, jobs=1, progress=False)
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -200,15 +214,16 @@ def test_a_pair_turned_past_the_limit_is_kept_where_the_odometry_places_it(one_h
 
 
 def test_a_revisit_of_the_first_frames_is_placed_where_it_cannot_be_bracketed(
-    tmp_path,
+    two_hz, monkeypatch
 ) -> None:
     """Query 234 of the 2 Hz cell revisits frame 0: no frame of the visit lies before the
     place, so every verified frame sees the match camera on one side and the pair is not
     bracketed. Placed by PnP with the odometry within confirm_distance_m of frame 0, it is
-    accepted there; without a pose topic, or with `place_unbracketed` off, it is not."""
-    gen.generate(TWO_HZ, tmp_path, jobs=1, progress=False)
-    frames, intrinsics = _frames_and_camera(tmp_path, "2Hz")
-    truth = _truth(tmp_path, "2Hz")
+    accepted there; without a pose topic, or with `place_unbracketed` off, it is not. Moved
+    to another frame, it is placed again from there and kept only if PnP from there also puts
+    the query within confirm_distance_m (`Verifier._placed_near`)."""
+    frames, intrinsics = _frames_and_camera(two_hz, "2Hz")
+    truth = _truth(two_hz, "2Hz")
     decision = sequence_decision(1, 5 * 10**8, 1, first=234, match=0, database_size=200)
 
     def verified(path: CameraPath | None, params=DEFAULT_VERIFICATION) -> tuple[int, str]:
@@ -225,6 +240,50 @@ def test_a_revisit_of_the_first_frames_is_placed_where_it_cannot_be_bracketed(
     assert verified(None)[1] == NOT_BRACKETED
     off = DEFAULT_VERIFICATION.replace(place_unbracketed=False)
     assert verified(truth, off)[1] == NOT_BRACKETED
+    # A stand-in nearest frame lands the pair on frame 1: kept there as PnP from frame 1
+    # places the query near it, turned down where PnP from frame 1 fails (as on 1280x720
+    # seed 2, a pair moved 2.5 m from the frame it was placed from, 2.03 m off its place).
+    monkeypatch.setattr(stage, "nearest_frame", lambda _p, _m, xyz, _f: (1, 0.5, norm(xyz)))
+    assert verified(truth) == (1, "accepted")
+    placed = stage.Verifier._position
+
+    def fails_at_1(self, query, frame, around, fitted):
+        return None if frame == 1 else placed(self, query, frame, around, fitted)
+
+    monkeypatch.setattr(stage.Verifier, "_position", fails_at_1)
+    assert verified(truth) == (0, NOT_BRACKETED)
+
+
+def test_a_pair_not_bracketed_does_not_move_to_an_end_of_the_frames_searched(two_hz) -> None:
+    """Query 234 of the 2 Hz cell revisits frames 0-1. Placed there from frame 76, whose
+    refined match may be any of frames 1-151 (`_reach`), the nearest of those is frame 1, at
+    their end, and the visit goes on past it: the place may lie beyond, so the pair stays
+    where it was. From frame 75 (frames 0-150, an end at the log's first frame) it moves."""
+    frames, intrinsics = _frames_and_camera(two_hz, "2Hz")
+    truth = _truth(two_hz, "2Hz")
+    verifier = Verifier(
+        DEFAULT_VERIFICATION,
+        lambda indices: ((i, frames[i]) for i in indices),
+        intrinsics,
+        camera_path=truth,
+    )
+    query = extract_features(frames[234], DEFAULT_VERIFICATION)
+    assert verifier._reach(76, 200) == range(1, 152)
+    not_bracketed = Verdict(False, 60, 100, "E", NOT_BRACKETED)
+
+    def placed(refined: int, at: int) -> tuple[int, str]:
+        """The pair checked at `refined`, with the query placed exactly at frame `at`."""
+        assert truth.orientations is not None
+        seen_from = Rotation.from_quat(truth.orientations[refined]).inv()
+        position = seen_from.apply(truth.positions[at] - truth.positions[refined])
+        moved, verdict = verifier._placed_unbracketed(
+            query, refined, not_bracketed, position, {}, 200
+        )
+        return moved, verdict.reason
+
+    assert placed(76, 1) == (76, NOT_BRACKETED)
+    assert placed(75, 1) == (1, "accepted")
+    assert placed(75, 0) == (0, "accepted")
 
 
 @pytest.mark.slow

@@ -74,6 +74,7 @@ from ..verification.metric_pose import (
 )
 from ..verification.motion import CameraPath
 from ..verification.params import VerificationParameters
+from ..verification.position import BASELINES_M
 from ..verification.stage import FeatureCache, VerifiedDecision, query_stride
 from .reread import LogFrameReader
 
@@ -85,8 +86,9 @@ METRIC_FEATURES: Final = "sift"
 # At a high frame rate, at most one metric fit per this much query time (module docstring).
 METRIC_INTERVAL_S: Final = 20.0
 # Neighbours of a match: the nearest frame on each side at least each baseline away by the
-# odometry, within this much time of the match (tools/reproduce/metric_edges.py: 8 frames at 2 Hz).
-NEIGHBOUR_BASELINES_M: Final = (1.0, 2.0)
+# odometry (the verification's position check picks the same), within this much time of the
+# match (tools/reproduce/metric_edges.py: 8 frames at 2 Hz).
+NEIGHBOUR_BASELINES_M: Final = BASELINES_M
 NEIGHBOUR_REACH_S: Final = 4.0
 # The odometry's error per metre of baseline (metres, degrees), on every axis: what the
 # samples' and drifting drives' odometry showed against their ground truth.

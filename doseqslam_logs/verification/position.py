@@ -23,6 +23,7 @@ Pure computation: features, poses and parameters in, frame indices out.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Final
 
 import numpy as np
 import numpy.typing as npt
@@ -33,9 +34,11 @@ from .metric_pose import MetricPose, MetricPoseParameters, OdometryNeighbour, od
 from .motion import CameraPath
 from .params import VerificationParameters
 
-# The neighbours of the match the query is resected against: the nearest frame of the
-# visit on each side at least this far from it (the metric stage's shortest baseline).
-BASELINE_M = 1.0
+# The neighbours of the match the query is resected against: on each side of the visit, the
+# nearest frame at least each of these from it, as the metric stage picks them (its
+# NEIGHBOUR_BASELINES_M): the frame 2 m away gives 3-D points to match features that the one
+# at 1 m sees under too little parallax or not at all, so more pairs are placed.
+BASELINES_M: Final = (1.0, 2.0)
 _PNP = MetricPoseParameters(refine_baselines=False)
 
 
@@ -51,15 +54,16 @@ def spacing_m(path: CameraPath, frame: int) -> float | None:
 
 
 def neighbours_of(path: CameraPath, match: int, frames: range) -> list[int]:
-    """On each side of `match` within `frames`, the nearest frame at least BASELINE_M from
-    it along a stretch the poses cover."""
+    """On each side of `match` within `frames`, the nearest frame at least each of
+    BASELINES_M from it along a stretch the poses cover (once, if one frame is both)."""
     chosen: list[int] = []
     for side in (-1, 1):
-        frame = match + side
-        while frame in frames and path.covers(min(frame, match), max(frame, match)):
-            if np.linalg.norm(path.positions[frame] - path.positions[match]) >= BASELINE_M:
+        frame, baselines = match + side, list(BASELINES_M)
+        while baselines and frame in frames and path.covers(min(frame, match), max(frame, match)):
+            distance = np.linalg.norm(path.positions[frame] - path.positions[match])
+            if distance >= baselines[0]:
                 chosen.append(frame)
-                break
+                baselines = [b for b in baselines if b > distance]
             frame += side
     return chosen
 

@@ -85,6 +85,9 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field, fields
 
+import numpy as np
+import numpy.typing as npt
+
 from .. import waiting
 from ..detector.events import Candidate, SequenceDecision
 from .geometry import (
@@ -513,7 +516,9 @@ class Verifier:
             if verdict.reason == NOT_BRACKETED:
                 bounds = self._reach(candidate.match_index, database_size)
                 refined, verdict = self._walk(query, window, seen, refined, stride, bounds)
-            refined, verdict = self._placed_by_odometry(query, window, seen, refined, verdict)
+            refined, verdict = self._placed_by_odometry(
+                query, window, seen, refined, verdict, database_size
+            )
             return PairCheck(candidate, refined, self._moved(query, candidate, refined, verdict))
 
         if stride == 1:
@@ -590,7 +595,9 @@ class Verifier:
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
             refined, verdict = self._bracketed(window, seen, refined, verdict)
-            refined, verdict = self._placed_by_odometry(query, window, seen, refined, verdict)
+            refined, verdict = self._placed_by_odometry(
+                query, window, seen, refined, verdict, decision.database_size
+            )
             verdict = self._moved(query, rejected.candidate, refined, verdict)
             hopeless = self._hopeless(verdict)
             hopeless_runs[number - 1] = hopeless_runs[number - 1] + 1 if hopeless else 0
@@ -643,6 +650,7 @@ class Verifier:
         seen: dict[int, Verdict],
         refined: int,
         verdict: Verdict,
+        database_size: int,
     ) -> tuple[int, Verdict]:
         """A checked pair as the query's position by PnP with the odometry's baseline leaves
         it (verification.position). Accepted, where the visit's frames lie over
@@ -650,10 +658,9 @@ class Verifier:
         that frame is relocate_margin_m nearer and its own check passes. Accepted and turned
         past max_rotation_deg (up to confirmed_rotation_deg): rejected for its rotation
         unless placed within confirm_distance_m of its match. Not bracketed, its fit passed
-        and not turned: accepted at the visit's frame nearest the query when that is within
-        confirm_distance_m, passes and is not turned either (`place_unbracketed`; one
-        relaxation a pair: each lets a few look-alikes through). Unchanged without a pose
-        topic or intrinsics."""
+        and not turned: accepted where the query is placed (`place_unbracketed`,
+        `_placed_unbracketed`; one relaxation a pair: each lets a few look-alikes through).
+        Unchanged without a pose topic or intrinsics."""
         path, params = self.camera_path, self.params
         if not self._can_place():
             return refined, verdict
@@ -674,25 +681,12 @@ class Verifier:
         # The visit around the refined match (a walk may have taken it past the window).
         reach, stop = params.refine_radius, max(window.stop, refined + 1)
         around = range(max(0, refined - reach), min(refined + reach + 1, stop))
-        near = neighbours_of(path, refined, around)
-        position = None
-        if near:  # else no baseline: nothing to triangulate, no frame to load
-            features = self._features([refined, *near])
-            visit = [neighbour(path, refined, n, features[n]) for n in near]
-            position = query_position(
-                query, features[refined], visit, fitted, self.intrinsics, params
-            )
+        position = self._position(query, refined, around, fitted)
         if position is None:
             return refined, self._turned(verdict) if turned and not unbracketed else verdict
-        nearest, distance, now = nearest_frame(path, refined, position, around)
         if unbracketed:
-            if distance > params.confirm_distance_m:
-                return refined, verdict
-            self._check_frames(query, [nearest], seen)
-            if not seen[nearest].accepted or self._is_turned(seen[nearest]):
-                return refined, verdict
-            self.stats.placed += 1
-            return nearest, seen[nearest]
+            return self._placed_unbracketed(query, refined, verdict, position, seen, database_size)
+        nearest, distance, now = nearest_frame(path, refined, position, around)
         if spaced and nearest != refined and now - distance >= params.relocate_margin_m:
             self._check_frames(query, [nearest], seen)
             if seen[nearest].accepted:
@@ -702,6 +696,61 @@ class Verifier:
         if turned and now > params.confirm_distance_m:
             return refined, self._turned(verdict)
         return refined, verdict
+
+    def _placed_unbracketed(
+        self,
+        query: FrameFeatures,
+        refined: int,
+        verdict: Verdict,
+        position: npt.NDArray[np.float64],
+        seen: dict[int, Verdict],
+        database_size: int,
+    ) -> tuple[int, Verdict]:
+        """A pair not bracketed, accepted at the frame nearest the query's position among
+        those its refined match may be (`_reach`) when: that frame is within
+        confirm_distance_m of it and not at an end of them that the visit goes on past (the
+        place may lie beyond), its own check passes unturned, and PnP from that frame places
+        the query within confirm_distance_m too. A position is trusted where it was measured:
+        the first may come from metres away, along a baseline on one side only. Else the
+        pair stays rejected."""
+        assert self.camera_path is not None
+        visit = self._reach(refined, database_size)
+        nearest, distance, _ = nearest_frame(self.camera_path, refined, position, visit)
+        cut = {visit.start, visit.stop - 1} - {0, database_size - 1}  # the visit goes on
+        if distance > self.params.confirm_distance_m or nearest in cut:
+            return refined, verdict
+        self._check_frames(query, [nearest], seen)
+        if not seen[nearest].accepted or self._is_turned(seen[nearest]):
+            return refined, verdict
+        if nearest != refined and not self._placed_near(query, nearest, visit, seen):
+            return refined, verdict
+        self.stats.placed += 1
+        return nearest, seen[nearest]
+
+    def _position(
+        self, query: FrameFeatures, frame: int, around: range, fitted: Verdict
+    ) -> npt.NDArray[np.float64] | None:
+        """The query camera in `frame`'s camera frame by PnP against its points triangulated
+        with its neighbours of the visit within `around` (None: no baseline, or no pose)."""
+        assert self.camera_path is not None and self.intrinsics is not None
+        near = neighbours_of(self.camera_path, frame, around)
+        if not near:  # no baseline: nothing to triangulate, no frame to load
+            return None
+        features = self._features([frame, *near])
+        visit = [neighbour(self.camera_path, frame, n, features[n]) for n in near]
+        return query_position(query, features[frame], visit, fitted, self.intrinsics, self.params)
+
+    def _placed_near(
+        self, query: FrameFeatures, frame: int, around: range, seen: dict[int, Verdict]
+    ) -> bool:
+        """Whether PnP from `frame` itself places the query within confirm_distance_m of it:
+        a pair not bracketed may move metres from the frame it was placed from, along a
+        baseline on one side only (a revisit of the first frames), and a position is trusted
+        where it was measured."""
+        position = self._position(query, frame, around, seen[frame])
+        return position is not None and float(np.linalg.norm(position)) <= (
+            self.params.confirm_distance_m
+        )
 
     def _is_turned(self, verdict: Verdict) -> bool:
         """Turned past max_rotation_deg (accepted by the fit only up to confirmed_rotation_deg)."""
