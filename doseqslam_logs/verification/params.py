@@ -115,7 +115,9 @@ class VerificationParameters:
     # With a pose topic, a pair whose fit passed but that is not bracketed (every verified
     # frame on one side of the query: a revisit of the visit's first frames, a window or walk
     # that stops short of the place) is accepted at the visit's frame that PnP places the
-    # query nearest, when within confirm_distance_m and its own check passes.
+    # query nearest, when within confirm_distance_m, not at an end of the frames searched
+    # that the visit goes on past, its own check passes and PnP from it places the query
+    # within confirm_distance_m too (`Verifier._placed_unbracketed`).
     place_unbracketed: bool = True
     # One feature extraction a frame: where the detector's segmentation is ORB on the same
     # feature image (`shares_features`: the verified defaults), it and the place index take
