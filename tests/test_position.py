@@ -15,7 +15,6 @@ import pytest
 from detector_helpers import sequence_decision
 from hypothesis import given
 from hypothesis import strategies as st
-from numpy.linalg import norm
 from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import read_annotations
@@ -23,7 +22,7 @@ from doseqslam_logs.cli.main import main
 from doseqslam_logs.sources import opened
 from doseqslam_logs.sources.camera_info import find_camera_info
 from doseqslam_logs.sources.images import decode_gray
-from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier, stage
+from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier
 from doseqslam_logs.verification.geometry import (
     NOT_BRACKETED,
     Intrinsics,
@@ -213,15 +212,11 @@ def test_a_pair_turned_past_the_limit_is_kept_where_the_odometry_places_it(one_h
     assert verified(stretched)[2] == f"rotation over {limit:g} deg"
 
 
-def test_a_revisit_of_the_first_frames_is_placed_where_it_cannot_be_bracketed(
-    two_hz, monkeypatch
-) -> None:
+def test_a_revisit_of_the_first_frames_is_placed_where_it_cannot_be_bracketed(two_hz) -> None:
     """Query 234 of the 2 Hz cell revisits frame 0: no frame of the visit lies before the
     place, so every verified frame sees the match camera on one side and the pair is not
     bracketed. Placed by PnP with the odometry within confirm_distance_m of frame 0, it is
-    accepted there; without a pose topic, or with `place_unbracketed` off, it is not. Moved
-    to another frame, it is placed again from there and kept only if PnP from there also puts
-    the query within confirm_distance_m (`Verifier._placed_near`)."""
+    accepted there; without a pose topic, or with `place_unbracketed` off, it is not."""
     frames, intrinsics = _frames_and_camera(two_hz, "2Hz")
     truth = _truth(two_hz, "2Hz")
     decision = sequence_decision(1, 5 * 10**8, 1, first=234, match=0, database_size=200)
@@ -240,25 +235,16 @@ def test_a_revisit_of_the_first_frames_is_placed_where_it_cannot_be_bracketed(
     assert verified(None)[1] == NOT_BRACKETED
     off = DEFAULT_VERIFICATION.replace(place_unbracketed=False)
     assert verified(truth, off)[1] == NOT_BRACKETED
-    # A stand-in nearest frame lands the pair on frame 1: kept there as PnP from frame 1
-    # places the query near it, turned down where PnP from frame 1 fails (as on 1280x720
-    # seed 2, a pair moved 2.5 m from the frame it was placed from, 2.03 m off its place).
-    monkeypatch.setattr(stage, "nearest_frame", lambda _p, _m, xyz, _f: (1, 0.5, norm(xyz)))
-    assert verified(truth) == (1, "accepted")
-    placed = stage.Verifier._position
-
-    def fails_at_1(self, query, frame, around, fitted):
-        return None if frame == 1 else placed(self, query, frame, around, fitted)
-
-    monkeypatch.setattr(stage.Verifier, "_position", fails_at_1)
-    assert verified(truth) == (0, NOT_BRACKETED)
 
 
-def test_a_pair_not_bracketed_does_not_move_to_an_end_of_the_frames_searched(two_hz) -> None:
-    """Query 234 of the 2 Hz cell revisits frames 0-1. Placed there from frame 76, whose
-    refined match may be any of frames 1-151 (`_reach`), the nearest of those is frame 1, at
-    their end, and the visit goes on past it: the place may lie beyond, so the pair stays
-    where it was. From frame 75 (frames 0-150, an end at the log's first frame) it moves."""
+def test_a_pair_not_bracketed_moves_only_where_it_is_placed_again(two_hz, monkeypatch) -> None:
+    """Query 234 of the 2 Hz cell revisits frame 0 (0.48 m away). Placed there from frame 75,
+    whose refined match may be any of frames 0-150 (`_reach`), the pair moves to frame 0: its
+    check passes and PnP from frame 0 puts the query within confirm_distance_m too. Where PnP
+    from frame 0 fails, or puts the query farther, it does not move (as on 1280x720 seed 2, a
+    pair moved 2.5 m from the frame it was placed from, 2.03 m off its place). Placed at frame
+    1 from frame 76 (frames 1-151), the nearest frame is at an end of them that the visit goes
+    on past: the place may lie beyond, so the pair does not move."""
     frames, intrinsics = _frames_and_camera(two_hz, "2Hz")
     truth = _truth(two_hz, "2Hz")
     verifier = Verifier(
@@ -268,6 +254,7 @@ def test_a_pair_not_bracketed_does_not_move_to_an_end_of_the_frames_searched(two
         camera_path=truth,
     )
     query = extract_features(frames[234], DEFAULT_VERIFICATION)
+    assert verifier._reach(75, 200) == range(0, 151)
     assert verifier._reach(76, 200) == range(1, 152)
     not_bracketed = Verdict(False, 60, 100, "E", NOT_BRACKETED)
 
@@ -281,9 +268,13 @@ def test_a_pair_not_bracketed_does_not_move_to_an_end_of_the_frames_searched(two
         )
         return moved, verdict.reason
 
-    assert placed(76, 1) == (76, NOT_BRACKETED)
-    assert placed(75, 1) == (1, "accepted")
     assert placed(75, 0) == (0, "accepted")
+    assert placed(76, 1) == (76, NOT_BRACKETED)
+    # PnP from the landing frame (`Verifier._placed_near`): failing, or 1.6 m ahead of it.
+    beyond = DEFAULT_VERIFICATION.confirm_distance_m + 0.1
+    for again in (None, np.array([0.0, 0.0, beyond])):
+        monkeypatch.setattr(Verifier, "_position", lambda *_, again=again: again)
+        assert placed(75, 0) == (75, NOT_BRACKETED)
 
 
 @pytest.mark.slow
