@@ -68,3 +68,19 @@ def annotated_sample(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., 
         return out
 
     return annotated
+
+
+@pytest.fixture(scope="session")
+def one_hz(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The matrix's 1 Hz cell, seed 1 (300 frames of 320x240): generated_cells."""
+    from generated_cells import ONE_HZ, generate
+
+    return generate(ONE_HZ, tmp_path_factory.mktemp("one_hz"))
+
+
+@pytest.fixture(scope="session")
+def two_hz(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The matrix's 2 Hz cell, seed 1 (600 frames of 320x240): generated_cells."""
+    from generated_cells import TWO_HZ, generate
+
+    return generate(TWO_HZ, tmp_path_factory.mktemp("two_hz"))

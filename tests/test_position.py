@@ -4,28 +4,23 @@ frame rate the loop moves to the visit's frame nearest the query camera."""
 from __future__ import annotations
 
 import contextlib
-import csv
 import io
 import json
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 from detector_helpers import sequence_decision
+from generated_cells import frames_and_camera, true_path
 from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import read_annotations
 from doseqslam_logs.cli.main import main
-from doseqslam_logs.sources import opened
-from doseqslam_logs.sources.camera_info import find_camera_info
-from doseqslam_logs.sources.images import decode_gray
 from doseqslam_logs.verification import DEFAULT_VERIFICATION, Verifier
 from doseqslam_logs.verification.geometry import (
     NOT_BRACKETED,
-    Intrinsics,
     Verdict,
     extract_features,
     verify_pair,
@@ -40,14 +35,9 @@ from doseqslam_logs.verification.position import (
     query_position,
     spacing_m,
 )
-from loggen import make_sample_logs as gen
-from reproduce import generalization_matrix as matrix
 
-CAMERA = "/camera/image/compressed"
 # The matrix's 1 Hz cell, seed 1: query 146 was bracketed at frame 29, 2.10 m from it (the
 # ground truth's radius is 2 m); frame 28 is 1.11 m from it.
-ONE_HZ = replace(matrix.BASE, name="1Hz", rate=1.0, seed=1)
-TWO_HZ = replace(matrix.BASE, name="2Hz", rate=2.0, seed=1)
 QUERY, BRACKETED, NEARER = 146, 29, 28
 
 unit_quaternions = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
@@ -121,47 +111,13 @@ def test_frames_without_a_pose_are_neither_neighbours_nor_spacing() -> None:
     assert spacing_m(path, 4) == pytest.approx(0.6)  # its step towards frame 3 is left out
 
 
-@pytest.fixture(scope="module")
-def two_hz(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("two_hz")
-    gen.generate(TWO_HZ, out, jobs=1, progress=False)
-    return out
-
-
-@pytest.fixture(scope="module")
-def one_hz(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("one_hz")
-    gen.generate(ONE_HZ, out, jobs=1, progress=False)
-    return out
-
-
-def _truth(cell: Path, name: str = "1Hz") -> CameraPath:
-    """The generator's poses as the camera path (an odometry without drift)."""
-    with open(cell / f"{name}.poses.csv") as file:
-        rows = [(float(r["x"]), float(r["y"]), float(r["yaw"])) for r in csv.DictReader(file)]
-    poses = np.asarray(rows)
-    positions = np.column_stack([poses[:, :2], np.zeros(len(poses))])
-    body = Rotation.from_euler("z", poses[:, 2:3])
-    orientations = (body * Rotation.from_matrix(OPTICAL_TO_BODY)).as_quat()
-    return CameraPath("/truth", positions, np.ones(len(poses), bool), orientations)
-
-
-def _frames_and_camera(cell: Path, name: str = "1Hz") -> tuple[list[np.ndarray], Intrinsics]:
-    log = cell / f"{name}.ros2.mcap"
-    with opened(log) as source:
-        frames = [decode_gray(m) for m in source.image_messages(CAMERA)]
-    info = find_camera_info(log, CAMERA).info
-    assert info is not None
-    return frames, Intrinsics(info.fx, info.fy, info.cx, info.cy)
-
-
 def test_the_pnp_places_the_query_nearer_the_frame_the_truth_puts_it_nearer(one_hz) -> None:
     """Query 146 of the 1 Hz cell, bracketed at frame 29 (2.10 m off): resected against frame
     29's points triangulated with frames 28 and 30, it is nearest frame 28 (1.11 m off)."""
     wanted = {QUERY, BRACKETED, BRACKETED - 1, BRACKETED + 1}
-    frames, intrinsics = _frames_and_camera(one_hz)
+    frames, intrinsics = frames_and_camera(one_hz)
     features = {i: extract_features(frames[i], DEFAULT_VERIFICATION) for i in wanted}
-    path = _truth(one_hz)
+    path = true_path(one_hz)
     truth = path.positions
     assert (
         np.linalg.norm(truth[QUERY] - truth[NEARER])
@@ -189,7 +145,7 @@ def test_a_pair_turned_past_the_limit_is_kept_where_the_odometry_places_it(one_h
     max_rotation_deg. Placed by PnP within confirm_distance_m, it is kept; without a pose
     topic, or with odometry whose metres are 4 times too long (the query then placed about
     2 m off), it is rejected for its rotation, as before the rule."""
-    frames, intrinsics = _frames_and_camera(one_hz)
+    frames, intrinsics = frames_and_camera(one_hz)
     decision = sequence_decision(1, 10**9, 1, first=148, match=30, database_size=120)
 
     def verified(path: CameraPath | None) -> tuple[int, float | None, str]:
@@ -202,7 +158,7 @@ def test_a_pair_turned_past_the_limit_is_kept_where_the_odometry_places_it(one_h
         return check.refined_match_index, verdict.rotation_deg, verdict.reason
 
     limit = DEFAULT_VERIFICATION.max_rotation_deg
-    truth = _truth(one_hz)
+    truth = true_path(one_hz)
     frame, rotation, reason = verified(truth)
     assert reason == "accepted" and rotation is not None
     assert limit < rotation <= DEFAULT_VERIFICATION.confirmed_rotation_deg
@@ -217,8 +173,8 @@ def test_a_revisit_of_the_first_frames_is_placed_where_it_cannot_be_bracketed(tw
     place, so every verified frame sees the match camera on one side and the pair is not
     bracketed. Placed by PnP with the odometry within confirm_distance_m of frame 0, it is
     accepted there; without a pose topic, or with `place_unbracketed` off, it is not."""
-    frames, intrinsics = _frames_and_camera(two_hz, "2Hz")
-    truth = _truth(two_hz, "2Hz")
+    frames, intrinsics = frames_and_camera(two_hz, "2Hz")
+    truth = true_path(two_hz, "2Hz")
     decision = sequence_decision(1, 5 * 10**8, 1, first=234, match=0, database_size=200)
 
     def verified(path: CameraPath | None, params=DEFAULT_VERIFICATION) -> tuple[int, str]:
@@ -245,8 +201,8 @@ def test_a_pair_not_bracketed_moves_only_where_it_is_placed_again(two_hz, monkey
     pair moved 2.5 m from the frame it was placed from, 2.03 m off its place). Placed at frame
     1 from frame 76 (frames 1-151), the nearest frame is at an end of them that the visit goes
     on past: the place may lie beyond, so the pair does not move."""
-    frames, intrinsics = _frames_and_camera(two_hz, "2Hz")
-    truth = _truth(two_hz, "2Hz")
+    frames, intrinsics = frames_and_camera(two_hz, "2Hz")
+    truth = true_path(two_hz, "2Hz")
     verifier = Verifier(
         DEFAULT_VERIFICATION,
         lambda indices: ((i, frames[i]) for i in indices),

@@ -28,7 +28,7 @@ from doseqslam_logs.sources.rosbags_source import RosbagsSource
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 ROS2 = SAMPLES / "drive_loops.ros2.mcap"
 # Loop closures the `annotate` defaults report on it (README).
-LOOPS = 81
+LOOPS = 84
 MATCH = "/doseqslam/match/image/compressed"
 TEXTS = "/doseqslam/match/annotations"
 MARKERS = "/doseqslam/markers"

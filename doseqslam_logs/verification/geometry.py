@@ -5,7 +5,8 @@ Pure computation: gray frames in, verdicts out. Features are extracted once per 
 matched with Lowe's ratio test (one match per feature of the match frame), and a fundamental
 matrix (or, with intrinsics, an essential matrix) is fitted robustly; the pair is accepted when
 the inliers reach `min_inliers`. With intrinsics the relative pose (rotation, direction of
-translation) comes from the essential matrix by cv2.recoverPose.
+translation) comes from the essential matrix by cv2.recoverPose (the rotation of a pair seen
+from nearly one spot from a homography: HOMOGRAPHY_SHARE).
 
 Determinism: OpenCV 5.0's RANSAC (FM_RANSAC, RANSAC) and USAC (USAC_MAGSAC) seed their own
 random generators on every call (measured: the global cv::RNG state changes nothing), and the
@@ -49,6 +50,18 @@ _DESCRIPTOR_BYTES = {"sift": 128, "orb": 32, "akaze": 61, "brisk": 64}
 DETAIL_FACTOR = 2
 # The reason of a refined match rejected by `bracketed_match`.
 NOT_BRACKETED = "not bracketed"
+# A pair whose essential fit turns past max_rotation_deg, with the inliers of a second guess
+# (second_guess_factor x min_inliers: a rotation measured again is one more chance to pass a
+# look-alike, and 90 % of a few dozen points may lie on one plane by chance), is measured
+# again by a homography fitted to that fit's inliers: where it explains at least this share
+# of them, the scene is far for the baseline (a revisit from nearly the same spot), the
+# essential matrix's decomposition is ill-conditioned there (its rotation off by 5-15 degrees
+# on generated drives), and the rotation nearest K^-1 H K is the pair's
+# (`_homography_rotation`).
+HOMOGRAPHY_SHARE = 0.9
+# The homography's inlier distance, in multiples of the essential fit's: a point's transfer
+# error is measured in one image, the epipolar distance only across the epipolar line.
+HOMOGRAPHY_THRESHOLD_FACTOR = 2.0
 # Inlier correspondences an accepted verdict keeps at most, for drawing: enough to show where
 # the two images agree, and a bounded cost per reported pair whatever its inliers.
 MAX_INLIER_POINTS = 200
@@ -584,10 +597,59 @@ def _essential_verdict(
     if not verdict.accepted:
         return verdict
     posed = _with_pose(verdict, np.asarray(essential[:3], np.float64), p_query, p_match, k, mask)
+    looked_again = verdict.inliers >= params.second_guess_factor * params.min_inliers
+    if (
+        posed.rotation_deg is not None
+        and posed.rotation_deg > params.max_rotation_deg
+        and looked_again
+    ):
+        posed = _homography_rotation(posed, p_query, p_match, k, mask, threshold, params)
     if posed.rotation_deg is not None and posed.rotation_deg > params.max_rotation_deg:
         reason = turned_too_far(params.max_rotation_deg)
         return dataclasses.replace(posed, accepted=False, reason=reason)
     return _with_points(posed, p_query, p_match, mask)
+
+
+def _homography_rotation(
+    verdict: Verdict,
+    p_query: Points,
+    p_match: Points,
+    k: npt.NDArray[np.float64],
+    mask: npt.NDArray[Any],
+    threshold: float,
+    params: VerificationParameters,
+) -> Verdict:
+    """`verdict` with the rotation of a homography fitted to its essential fit's inliers,
+    where that homography explains HOMOGRAPHY_SHARE of them (as ORB-SLAM's initialization
+    picks H or F by which explains the matches): with the scene far for the baseline, the
+    matches constrain the rotation and hardly the translation, and the rotation nearest
+    K^-1 H K (its orthogonal polar factor) is that rotation. Unchanged otherwise; the
+    translation's direction stays the essential fit's."""
+    inliers = mask.ravel().astype(bool)
+    cv2.setRNGSeed(_FIT_SEED)
+    try:
+        homography, kept = cv2.findHomography(
+            p_query[inliers],
+            p_match[inliers],
+            cv2.USAC_MAGSAC,
+            HOMOGRAPHY_THRESHOLD_FACTOR * threshold,
+            maxIters=params.max_iterations,
+            confidence=params.confidence,
+        )
+    except cv2.error:
+        return verdict
+    if homography is None or kept is None or _count(kept) < HOMOGRAPHY_SHARE * verdict.inliers:
+        return verdict
+    u, _, vt = np.linalg.svd(np.linalg.inv(k) @ homography @ k)
+    nearest = u @ vt
+    if np.linalg.det(nearest) < 0:  # H is defined up to scale, its sign included
+        nearest = -nearest
+    rotation = Rotation.from_matrix(nearest)
+    x, y, z, w = (float(v) for v in rotation.as_quat())
+    if w < 0:  # the scalar-non-negative quaternion, as `_with_pose` gives
+        x, y, z, w = -x, -y, -z, -w
+    angle = math.degrees(float(np.linalg.norm(rotation.as_rotvec())))
+    return dataclasses.replace(verdict, rotation_xyzw=(x, y, z, w), rotation_deg=angle)
 
 
 def _with_pose(

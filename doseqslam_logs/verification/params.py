@@ -77,7 +77,9 @@ class VerificationParameters:
     # With intrinsics (essential matrix) only, both chosen on our sample logs (a pair seen from
     # the same place with another heading, or from a few metres off, is not a revisit): a pair
     # whose relative rotation exceeds
-    # max_rotation_deg is rejected (180: no limit), and with `bracket` a refined match is kept
+    # max_rotation_deg is rejected (180: no limit; a pair with a second guess's inliers that a
+    # homography explains is measured by it, geometry.HOMOGRAPHY_SHARE: seen from nearly one
+    # spot, the essential matrix's rotation is off), and with `bracket` a refined match is kept
     # only where the query's position lies between two verified frames of the match's
     # trajectory (geometry.bracketed_match); the refined match is then the nearer of those two.
     max_rotation_deg: float = 10.0
