@@ -623,8 +623,8 @@ def _homography_rotation(
     where that homography explains HOMOGRAPHY_SHARE of them (as ORB-SLAM's initialization
     picks H or F by which explains the matches): with the scene far for the baseline, the
     matches constrain the rotation and hardly the translation, and the rotation nearest
-    K^-1 H K (its orthogonal polar factor) is that rotation. Unchanged otherwise; the
-    translation's direction stays the essential fit's."""
+    K^-1 H K (its orthogonal polar factor) is that rotation; the translation's direction is
+    then the one that best fits it (`_direction_given`). Unchanged otherwise."""
     inliers = mask.ravel().astype(bool)
     cv2.setRNGSeed(_FIT_SEED)
     try:
@@ -649,7 +649,37 @@ def _homography_rotation(
     if w < 0:  # the scalar-non-negative quaternion, as `_with_pose` gives
         x, y, z, w = -x, -y, -z, -w
     angle = math.degrees(float(np.linalg.norm(rotation.as_rotvec())))
-    return dataclasses.replace(verdict, rotation_xyzw=(x, y, z, w), rotation_deg=angle)
+    direction = _direction_given(rotation.as_matrix(), p_query[inliers], p_match[inliers], k)
+    return dataclasses.replace(
+        verdict,
+        rotation_xyzw=(x, y, z, w),
+        rotation_deg=angle,
+        translation_direction=(float(direction[0]), float(direction[1]), float(direction[2])),
+    )
+
+
+def _direction_given(
+    rotation: npt.NDArray[np.float64], p_query: Points, p_match: Points, k: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """The unit t that best fits the epipolar constraint m^T [t]x R q = 0 of the points with R
+    given (q, m: their normalized rays): t is orthogonal to each R q x m, so it is the last
+    right singular vector of those rows; of t and -t, the one that puts more points in front
+    of both cameras (X_match = R X_query + t, as `Verdict`'s pose). The recorded pose stays
+    one pose: the homography's rotation with the essential fit's direction would not be."""
+    k_inv = np.linalg.inv(k)
+    q = np.column_stack([p_query, np.ones(len(p_query))]) @ k_inv.T
+    m = np.column_stack([p_match, np.ones(len(p_match))]) @ k_inv.T
+    turned = q @ rotation.T
+    normals = np.cross(turned, m)
+    direction: npt.NDArray[np.float64] = np.linalg.svd(normals)[2][-1]
+    # Depths along the rays: lambda_m m = lambda_q R q + t, crossed with m and with R q.
+    squared = np.einsum("ij,ij->i", normals, normals)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        query_depth = np.einsum("ij,ij->i", np.cross(m, direction), normals) / squared
+        match_depth = np.einsum("ij,ij->i", np.cross(turned, direction), normals) / squared
+    ahead = int(np.count_nonzero((query_depth > 0) & (match_depth > 0)))
+    behind = int(np.count_nonzero((query_depth < 0) & (match_depth < 0)))
+    return direction if ahead >= behind else -direction
 
 
 def _with_pose(
