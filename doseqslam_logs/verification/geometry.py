@@ -438,6 +438,11 @@ def _crossing(sides: list[int], inliers: list[int]) -> int | None:
     return -best[2]
 
 
+def turned_past(verdict: Verdict, limit_deg: float) -> bool:
+    """Whether the verdict's relative pose turns past `limit_deg` (False without a pose)."""
+    return verdict.rotation_deg is not None and verdict.rotation_deg > limit_deg
+
+
 def turned_too_far(limit_deg: float) -> str:
     """The reason of a pair rejected for a rotation over `limit_deg`."""
     return f"rotation over {limit_deg:g} deg"
@@ -598,13 +603,9 @@ def _essential_verdict(
         return verdict
     posed = _with_pose(verdict, np.asarray(essential[:3], np.float64), p_query, p_match, k, mask)
     looked_again = verdict.inliers >= params.second_guess_factor * params.min_inliers
-    if (
-        posed.rotation_deg is not None
-        and posed.rotation_deg > params.max_rotation_deg
-        and looked_again
-    ):
+    if looked_again and turned_past(posed, params.max_rotation_deg):
         posed = _homography_rotation(posed, p_query, p_match, k, mask, threshold, params)
-    if posed.rotation_deg is not None and posed.rotation_deg > params.max_rotation_deg:
+    if turned_past(posed, params.max_rotation_deg):
         reason = turned_too_far(params.max_rotation_deg)
         return dataclasses.replace(posed, accepted=False, reason=reason)
     return _with_points(posed, p_query, p_match, mask)
@@ -626,11 +627,12 @@ def _homography_rotation(
     K^-1 H K (its orthogonal polar factor) is that rotation; the translation's direction is
     then the one that best fits it (`_direction_given`). Unchanged otherwise."""
     inliers = mask.ravel().astype(bool)
+    q_inliers, m_inliers = p_query[inliers], p_match[inliers]
     cv2.setRNGSeed(_FIT_SEED)
     try:
         homography, kept = cv2.findHomography(
-            p_query[inliers],
-            p_match[inliers],
+            q_inliers,
+            m_inliers,
             cv2.USAC_MAGSAC,
             HOMOGRAPHY_THRESHOLD_FACTOR * threshold,
             maxIters=params.max_iterations,
@@ -649,7 +651,7 @@ def _homography_rotation(
     if w < 0:  # the scalar-non-negative quaternion, as `_with_pose` gives
         x, y, z, w = -x, -y, -z, -w
     angle = math.degrees(float(np.linalg.norm(rotation.as_rotvec())))
-    direction = _direction_given(rotation.as_matrix(), p_query[inliers], p_match[inliers], k)
+    direction = _direction_given(rotation.as_matrix(), q_inliers, m_inliers, k)
     return dataclasses.replace(
         verdict,
         rotation_xyzw=(x, y, z, w),

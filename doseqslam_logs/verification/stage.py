@@ -101,6 +101,7 @@ from .geometry import (
     extract_features,
     pair_min_inliers,
     side_of_query,
+    turned_past,
     turned_too_far,
     verify_pair,
 )
@@ -754,8 +755,7 @@ class Verifier:
 
     def _is_turned(self, verdict: Verdict) -> bool:
         """Turned past max_rotation_deg (accepted by the fit only up to confirmed_rotation_deg)."""
-        rotation = verdict.rotation_deg
-        return rotation is not None and rotation > self.params.max_rotation_deg
+        return turned_past(verdict, self.params.max_rotation_deg)
 
     def _turned(self, verdict: Verdict) -> Verdict:
         """Rejected for its rotation, as the fit rejects it without a pose topic."""
