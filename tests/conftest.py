@@ -71,6 +71,17 @@ def annotated_sample(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., 
 
 
 @pytest.fixture(scope="session")
+def reference_cache() -> Path | None:
+    """Where the byte-comparison tests keep an earlier version's outputs between runs
+    (reproduce.compare_versions: keyed by commit, log, options, machine and libraries):
+    DOSEQSLAM_REFERENCE_CACHE, default ~/.cache/doseqslam-reference; empty: none."""
+    folder = os.environ.get("DOSEQSLAM_REFERENCE_CACHE")
+    if folder is None:
+        return Path.home() / ".cache" / "doseqslam-reference"
+    return Path(folder) if folder else None
+
+
+@pytest.fixture(scope="session")
 def one_hz(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The matrix's 1 Hz cell, seed 1 (300 frames of 320x240): generated_cells."""
     from generated_cells import ONE_HZ, generate

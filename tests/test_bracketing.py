@@ -98,8 +98,9 @@ def test_without_both_rules_the_check_accepts_other_places(tmp_path) -> None:
     assert NOT_BRACKETED not in rejected and not any("rotation over" in r for r in rejected)
 
 
-def test_rejections_name_the_rule_and_carry_no_pose(tmp_path) -> None:
-    closures = _verified(SAMPLES / "drive_varrate.bag", tmp_path / "out.mcap")
+def test_rejections_name_the_rule_and_carry_no_pose(annotated_sample) -> None:
+    # The command's defaults, which are the library's (test_annotate): the run's shared output.
+    closures = list(read_annotations(annotated_sample("drive_varrate.bag")).loop_closures)
     reasons = [lc.rejection_reason for lc in closures if lc.verification == "rejected"]
     assert NOT_BRACKETED in reasons and "rotation over 10 deg" in reasons
     assert not any(lc.has_relative_pose for lc in closures if lc.verification != "accepted")

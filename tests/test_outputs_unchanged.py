@@ -76,7 +76,7 @@ def _has_reference() -> bool:
 @pytest.mark.slow
 @pytest.mark.skipif(not _has_reference(), reason=f"no git history with {REFERENCE} here")
 def test_the_commands_defaults_annotate_the_samples_to_the_same_bytes(
-    tmp_path, annotated_sample
+    tmp_path, annotated_sample, reference_cache
 ) -> None:
     # drive_loops.bag and .rosbag2 hold drive_loops.ros2.mcap's data in other containers: the
     # --no-verify bytes (test_paper_outputs_unchanged.py) cover their copying, these the
@@ -85,5 +85,8 @@ def test_the_commands_defaults_annotate_the_samples_to_the_same_bytes(
     names = [name for name in compare_versions.SAMPLES if name not in copies]
     logs = [REPO / "sample_logs" / name for name in names]
     ours = lambda log: annotated_sample(log.name)  # noqa: E731 - the run's shared outputs
-    results = compare_versions.compare(BYTES_REFERENCE, logs, [], tmp_path, current=ours)
+    cache = reference_cache  # the reference's outputs of an earlier run on this machine
+    results = compare_versions.compare(
+        BYTES_REFERENCE, logs, [], tmp_path, current=ours, cache=cache
+    )
     assert results == [(log.name, True) for log in logs]

@@ -38,15 +38,49 @@ class Counts(StageObserver):
         self.advanced_by[stage].append((done, total))
 
 
+class Watched(StageObserver):
+    """One run heard by every observer the tests look at: the stage counts, and the command's
+    Progress on a terminal, off one in a run shorter than QUIET_S (quiet), and off one in a
+    run past it (lines). The replay's frames go to the terminal's, as `annotate` passes them."""
+
+    def __init__(self) -> None:
+        self.counts = Counts()
+        self.streams = {"terminal": Terminal(), "quiet": io.StringIO(), "lines": io.StringIO()}
+        self.shown = {name: Progress(None, "annotate", s) for name, s in self.streams.items()}
+        # As if the run were shorter than QUIET_S, or longer, whatever the machine's load.
+        self.shown["quiet"]._past_quiet = lambda: False  # type: ignore[method-assign]
+        self.shown["lines"]._past_quiet = lambda: True  # type: ignore[method-assign]
+        self._observers: list[StageObserver] = [self.counts, *self.shown.values()]
+
+    def __call__(self, done: int) -> None:
+        self.shown["terminal"](done)
+
+    def started(self, stage: str) -> None:
+        for observer in self._observers:
+            observer.started(stage)
+
+    def advanced(self, stage: str, done: int, total: int | None) -> None:
+        for observer in self._observers:
+            observer.advanced(stage, done, total)
+
+    def text(self, name: str) -> str:
+        self.shown[name].close()
+        return self.streams[name].getvalue()
+
+
 @pytest.fixture(scope="module")
-def counts(tmp_path_factory: pytest.TempPathFactory) -> Counts:
-    watch = Counts()
-    annotate_log(SAMPLE, tmp_path_factory.mktemp("run") / "out.mcap", observer=watch)
-    return watch
+def watched(tmp_path_factory: pytest.TempPathFactory) -> Watched:
+    run = Watched()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(progress_module, "LINE_EVERY_S", 0.0)  # off a terminal: every count a line
+        out = tmp_path_factory.mktemp("run") / "out.mcap"
+        annotate_log(SAMPLE, out, progress=run, observer=run)
+    return run
 
 
 @pytest.mark.slow
-def test_every_stage_after_the_replay_reports_its_count_up_to_its_total(counts: Counts) -> None:
+def test_every_stage_after_the_replay_reports_its_count_up_to_its_total(watched: Watched) -> None:
+    counts = watched.counts
     assert counts.order == ["replay", "verify", "metric", "write"]
     verify = counts.advanced_by["verify"]
     assert [done for done, _ in verify] == list(range(1, 33))  # the sample's 32 sequences
@@ -60,12 +94,8 @@ def test_every_stage_after_the_replay_reports_its_count_up_to_its_total(counts: 
 
 
 @pytest.mark.slow
-def test_on_a_terminal_each_stage_has_its_bar_and_time_left(tmp_path: Path) -> None:
-    stream = Terminal()
-    shown = Progress(None, "annotate", stream)
-    annotate_log(SAMPLE, tmp_path / "out.mcap", progress=shown, observer=shown)
-    shown.close()
-    text = stream.getvalue()
+def test_on_a_terminal_each_stage_has_its_bar_and_time_left(watched: Watched) -> None:
+    text = watched.text("terminal")
     for stage, unit in (("verify", "sequences"), ("metric", "fits"), ("write", "messages")):
         assert re.search(rf"annotate {stage} \[[#-]{{30}}\] \d+/\d+ {unit}", text), stage
     assert "verifying the candidate pairs geometrically" in text and "writing the output" in text
@@ -73,17 +103,10 @@ def test_on_a_terminal_each_stage_has_its_bar_and_time_left(tmp_path: Path) -> N
 
 @pytest.mark.slow
 def test_off_a_terminal_a_short_run_prints_nothing_and_a_long_one_a_line_per_stage(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    watched: Watched,
 ) -> None:
-    monkeypatch.setattr(progress_module, "QUIET_S", 1e9)  # a run shorter than QUIET_S, whatever
-    quiet = io.StringIO()  # the machine's load
-    annotate_log(SAMPLE, tmp_path / "a.mcap", observer=Progress(None, "annotate", quiet))
-    assert quiet.getvalue() == ""
-    monkeypatch.setattr(progress_module, "QUIET_S", 0.0)  # as if the run were long
-    monkeypatch.setattr(progress_module, "LINE_EVERY_S", 0.0)
-    lines = io.StringIO()
-    annotate_log(SAMPLE, tmp_path / "b.mcap", observer=Progress(None, "annotate", lines))
-    text = lines.getvalue()
+    assert watched.text("quiet") == ""
+    text = watched.text("lines")
     assert "\r" not in text
     for line in ("annotate: verifying the candidate pairs geometrically", "annotate: writing"):
         assert line in text

@@ -148,8 +148,17 @@ def test_annotate_extracts_the_segmentations_orb_only_when_not_shared(
 
     monkeypatch.setattr(segmentation_module.DescriptorSegmenter, "prepare", counted)
     verification = DEFAULT_VERIFICATION.replace(shared_features=shared)
-    result = annotate_log(
-        SAMPLE, tmp_path / "out.mcap", options=AnnotateOptions(verification=verification)
-    )
-    assert result.replay.frames == 240
-    assert len(calls) == (0 if shared else 240)
+    # The replay is what counts (the verification and write stages are not): 100 frames do.
+    end_ns = _log_time_of_frame(100)
+    options = AnnotateOptions(verification=verification, end_ns=end_ns, sidecar=True)
+    result = annotate_log(SAMPLE, tmp_path / "out.mcap", options=options)
+    assert result.replay.frames == 100
+    assert len(calls) == (0 if shared else 100)
+
+
+def _log_time_of_frame(index: int) -> int:
+    from doseqslam_logs.sources import open_source, pick_image_topic
+
+    with open_source(SAMPLE) as source:
+        messages = source.image_messages(pick_image_topic(source, None), None, None)
+        return next(m.log_time_ns for i, m in enumerate(messages) if i == index)
