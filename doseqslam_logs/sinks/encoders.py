@@ -100,8 +100,36 @@ class RosBuilder:
             if item_desc[0] == Nodetype.BASE and item_desc[1][0] in _NUMPY_TYPES:
                 # rosbags serializes primitive arrays from numpy arrays only.
                 return np.asarray(value, dtype=_NUMPY_TYPES[item_desc[1][0]])
+            if item_desc[0] == Nodetype.NAME and self._is_flat(item_desc[1]):
+                return self._flat_items(item_desc[1], value)
             return [self._value(item_desc, item) for item in value]
         return value
+
+    def _is_flat(self, typename: str) -> bool:
+        """Whether a type's fields are all of base types (points, colours), so that its
+        dicts map onto the constructor's arguments as they are. The builtin times are not:
+        our dicts spell their fields otherwise."""
+        known: dict[str, bool] = self.__dict__.setdefault("_flat_types", {})  # its types
+        flat = known.get(typename)
+        if flat is None:
+            fielddefs = self.typestore.fielddefs[typename][1]
+            flat = not typename.startswith("builtin_interfaces/") and all(
+                desc[0] == Nodetype.BASE for _, desc in fielddefs
+            )
+            known[typename] = flat
+        return flat
+
+    def _flat_items(self, typename: str, items: Any) -> list[object]:
+        """Sequences of a flat type (the thousands of points of the loop lines and inlier
+        dots) built straight from their dicts: the constructor checks the field names, the
+        values pass unchanged as `build` passes base values, at a tenth of its cost."""
+        make = self.typestore.types[typename]
+        try:
+            return [make(**item) for item in items]
+        except TypeError:
+            for item in items:  # the one that failed, with `build`'s error
+                self.build(typename, item)
+            raise
 
 
 class _RosEncoder(RosBuilder, MessageEncoder):

@@ -211,7 +211,7 @@ class _RosVisualEncoder(RosBuilder, VisualEncoder):
         marker["type"] = _ROS_MARKER_TYPES[lines.kind]
         marker["scale"]["x"] = lines.thickness_m  # a line's width
         marker["color"] = dict(zip("rgba", lines.color, strict=True))
-        marker["points"] = [dict(zip("xyz", p, strict=True)) for p in lines.points]
+        marker["points"] = [{"x": x, "y": y, "z": z} for x, y, z in lines.points]
         return marker
 
     def annotations(

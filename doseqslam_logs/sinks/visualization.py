@@ -478,7 +478,8 @@ def _inlier_dots(points: PointPairs | None) -> tuple[list[Dots], list[Dots]]:
 def _dots(pixels: npt.NDArray[np.float32]) -> Dots:
     # Keypoints have pixel centres at integers; an annotation's origin is the top left pixel's
     # corner: half a pixel on. Hundredths of a pixel are more than a viewer can show.
-    drawn = [(round(float(x) + 0.5, 2), round(float(y) + 0.5, 2)) for x, y in pixels]
+    # tolist: Python floats at once (float32 to float64 is exact), not a NumPy scalar each.
+    drawn = [(round(x + 0.5, 2), round(y + 0.5, 2)) for x, y in np.asarray(pixels).tolist()]
     return Dots(drawn, INLIER_COLOR, INLIER_RADIUS_PX)
 
 
