@@ -40,34 +40,65 @@ def shared_data() -> Path:
 SAMPLE_LOGS = REPO / "sample_logs"
 
 
+def _run_folder(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
+    """A folder of the test run shared by the xdist workers: each worker's basetemp is a
+    folder of the run's own temporary root."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    folder = root / name
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+def _once(folder: Path, key: str, out: Path, make: Callable[[Path], None]) -> Path:
+    """`out`, made by `make(partial path)` by the first worker that asks, the others waiting
+    for it; a partial output never takes its name."""
+    with open(folder / f"{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not out.exists():
+            made = folder / f".{key}.partial{out.suffix}"
+            make(made)
+            made.rename(out)
+    return out
+
+
 @pytest.fixture(scope="session")
 def annotated_sample(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Path]:
     """`annotated_sample(name, *options)`: `sample_logs/NAME` annotated by this version with
     `doseqslam-logs annotate NAME -o OUT *options`, once per test run (shared by the xdist
     workers through a locked folder of the run's own temporary root), for tests that only
     read the output: a dozen test files read the same annotation of a sample."""
-    base = tmp_path_factory.getbasetemp()
-    # Under xdist each worker's basetemp is a folder of the run's root: share that root.
-    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
-    folder = root / "annotated-samples"
-    folder.mkdir(exist_ok=True)
+    folder = _run_folder(tmp_path_factory, "annotated-samples")
 
     def annotated(name: str, *options: str) -> Path:
-        from doseqslam_logs.cli.main import main
-
         key = hashlib.sha256(repr((name, options)).encode()).hexdigest()[:12]
         out = folder / f"{key}-{Path(name).name}.mcap"
-        with open(folder / f"{key}.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # one worker annotates, the others wait for it
-            if not out.exists():
-                made = folder / f".{key}.partial.mcap"
-                with contextlib.redirect_stdout(io.StringIO()):
-                    code = main(["annotate", str(SAMPLE_LOGS / name), "-o", str(made), *options])
-                assert code == 0, f"annotate {name} {options} failed"
-                made.rename(out)
-        return out
+        return _once(folder, key, out, lambda made: _annotate(SAMPLE_LOGS / name, made, options))
 
     return annotated
+
+
+def _annotate(log: Path, out: Path, options: tuple[str, ...] = ()) -> None:
+    from doseqslam_logs.cli.main import main
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        code = main(["annotate", str(log), "-o", str(out), *options])
+    assert code == 0, f"annotate {log} {options} failed"
+
+
+@pytest.fixture(scope="session")
+def annotated_drifting_drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """reproduce.pose_graph_check's drifting drive (drive_loops' settings, seed 29: its
+    odometry 4.4 m off at the end) annotated with the command's defaults, once per test run
+    (shared like `annotated_sample`): test_optimize and test_pose_graph read it."""
+    from reproduce import pose_graph_check
+
+    folder = _run_folder(tmp_path_factory, "drifting-drive")
+
+    def make(made: Path) -> None:
+        _annotate(pose_graph_check.generate_drifting_drive(folder), made)
+
+    return _once(folder, "annotated", folder / "annotated.mcap", make)
 
 
 @pytest.fixture(scope="session")

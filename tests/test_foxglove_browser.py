@@ -73,13 +73,15 @@ def _missing() -> str:
 
 @pytest.mark.slow
 @pytest.mark.skipif(bool(_missing()), reason=_missing() or "ready")
-def test_every_output_profile_opens_in_foxglove_with_no_problem(tmp_path: Path) -> None:
+def test_every_output_profile_opens_in_foxglove_with_no_problem(
+    tmp_path: Path, annotated_sample
+) -> None:
     outputs = []
     for profile, name in PROFILES.items():
         output = tmp_path / f"{profile}.annotated.mcap"
-        # --no-verify: the same schemas and channels, in a second instead of ten.
-        assert main(["annotate", str(REPO / "sample_logs" / name), "-o", str(output),
-                     "--no-verify"]) == 0  # fmt: skip
+        # --no-verify: the same schemas and channels, in a second instead of ten; the run's
+        # shared output, under the name the driver reports.
+        shutil.copyfile(annotated_sample(name, "--no-verify"), output)
         outputs.append(output)
     shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
     shots.mkdir(parents=True, exist_ok=True)
@@ -185,7 +187,7 @@ def open_in_layout(log: Path, shots: Path, seeks: str) -> dict[str, Any]:
 @pytest.mark.slow
 @pytest.mark.skipif(bool(_missing()), reason=_missing() or "ready")
 def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
-    tmp_path: Path,
+    tmp_path: Path, annotated_sample
 ) -> None:
     """docs/foxglove_layout.json over `optimize` of the ROS 2 output of the `annotate`
     defaults, seeked to a loop closure and then between two: the run drives the viewer; the
@@ -194,8 +196,7 @@ def test_the_layout_shows_query_match_loop_lines_and_both_paths_with_no_problem(
     the paths, has neither path colour."""
     pytest.importorskip("gtsam")
     annotated, output = tmp_path / "ros2.annotated.mcap", tmp_path / "ros2.layout.mcap"
-    sample = REPO / "sample_logs" / PROFILES["ros2"]
-    assert main(["annotate", str(sample), "-o", str(annotated)]) == 0
+    shutil.copyfile(annotated_sample(PROFILES["ros2"]), annotated)  # the run's shared output
     assert main(["optimize", str(annotated), "-o", str(output)]) == 0
     shots = Path(os.environ.get("DOSEQSLAM_VIEWER_SHOTS", tmp_path))
     shots.mkdir(parents=True, exist_ok=True)

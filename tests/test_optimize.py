@@ -148,12 +148,8 @@ def test_without_gtsam_the_command_names_the_extra(
 
 
 @pytest.fixture(scope="module")
-def drifting(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("drifting")
-    annotated = folder / "annotated.mcap"
-    log = check.generate_drifting_drive(folder)
-    assert main(["annotate", str(log), "-o", str(annotated)]) == 0
-    return annotated
+def drifting(annotated_drifting_drive: Path) -> Path:
+    return annotated_drifting_drive  # the run's shared annotation (conftest)
 
 
 def _truth_at_vertices(annotated: Path, graph: PoseGraph) -> Any:

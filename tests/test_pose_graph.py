@@ -22,6 +22,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.annotations.reader import read_annotations
+from doseqslam_logs.cli.main import main
 from doseqslam_logs.export.loops import frame_times_ns
 from doseqslam_logs.export.pose_graph import verified_body_rotation
 from doseqslam_logs.sources.poses import read_poses
@@ -41,15 +42,24 @@ MIN_IMPROVEMENT_DRIFTING = 2.5
 MAX_WORSENING_LOW_DRIFT = 1.15
 
 
-@pytest.fixture(scope="module")
-def drifting(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    folder = tmp_path_factory.mktemp("drifting")
-    return check.annotate_and_export(check.generate_drifting_drive(folder), folder)
+def _exported(annotated: Path, folder: Path) -> dict[str, Path]:
+    """`export --format g2o --odometry-topic /odom` of an annotated log (as
+    check.annotate_and_export does after its `annotate` with the command's defaults)."""
+    g2o = folder / "graph.g2o"
+    export = ["export", str(annotated), "--format", "g2o", "--odometry-topic", "/odom"]
+    assert main([*export, "-o", str(g2o)]) == 0
+    return {"annotated": annotated, "g2o": g2o}
 
 
 @pytest.fixture(scope="module")
-def low_drift(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    return check.annotate_and_export(DRIVE_LOOPS, tmp_path_factory.mktemp("drive_loops"))
+def drifting(tmp_path_factory: pytest.TempPathFactory, annotated_drifting_drive) -> dict[str, Path]:
+    return _exported(annotated_drifting_drive, tmp_path_factory.mktemp("drifting"))
+
+
+@pytest.fixture(scope="module")
+def low_drift(tmp_path_factory: pytest.TempPathFactory, annotated_sample) -> dict[str, Path]:
+    annotated = annotated_sample(DRIVE_LOOPS.name)  # the command's defaults: the run's shared one
+    return _exported(annotated, tmp_path_factory.mktemp("drive_loops"))
 
 
 def test_gtsam_loads_every_vertex_and_edge_of_the_export(drifting: dict[str, Path]) -> None:
