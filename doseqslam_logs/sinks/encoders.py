@@ -7,10 +7,11 @@ profile is one new `MessageEncoder` subclass plus one entry in `ENCODERS`.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 import numpy as np
@@ -74,6 +75,10 @@ def check_fields(type_name: str, expected: list[str], fields: Mapping[str, Any])
         raise ValueError(f"{type_name}: missing fields {missing}, unknown fields {extra}")
 
 
+# A type's field names, (name, conversion or None) per field, and its class (`RosBuilder._plan`).
+_Plan = tuple[set[str], list[tuple[str, Callable[[Any], Any] | None]], Callable[..., object]]
+
+
 class RosBuilder:
     """Rosbags message objects from plain message dicts, for the types of `typestore`."""
 
@@ -84,10 +89,28 @@ class RosBuilder:
 
         Raises ValueError when the dict's fields differ from the definition's.
         """
-        fielddefs = self.typestore.fielddefs[typename][1]
-        check_fields(typename, [name for name, _ in fielddefs], fields)
-        values = {name: self._value(desc, fields[name]) for name, desc in fielddefs}
-        return self.typestore.types[typename](**values)
+        names, steps, make = self._plan(typename)
+        if fields.keys() != names:
+            check_fields(typename, [name for name, _ in steps], fields)
+        values = {
+            name: fields[name] if convert is None else convert(fields[name])
+            for name, convert in steps
+        }
+        return make(**values)
+
+    def _plan(self, typename: str) -> _Plan:
+        """The type's field names, each field's conversion (None: a base value, passed as it
+        is) and its class, worked out once per type: our records and the visualization's
+        messages are built by the ten thousand."""
+        plans: dict[str, _Plan] = self.__dict__.setdefault("_plans", {})
+        if typename not in plans:
+            fielddefs = self.typestore.fielddefs[typename][1]
+            steps: list[tuple[str, Callable[[Any], Any] | None]] = [
+                (name, None if desc[0] == Nodetype.BASE else functools.partial(self._value, desc))
+                for name, desc in fielddefs
+            ]
+            plans[typename] = {name for name, _ in fielddefs}, steps, self.typestore.types[typename]
+        return plans[typename]
 
     def _value(self, desc: Any, value: Any) -> Any:
         nodetype, detail = desc
