@@ -132,15 +132,9 @@ class RosBuilder:
         """Whether a type's fields are all of base types (points, colours), so that its
         dicts map onto the constructor's arguments as they are. The builtin times are not:
         our dicts spell their fields otherwise."""
-        known: dict[str, bool] = self.__dict__.setdefault("_flat_types", {})  # its types
-        flat = known.get(typename)
-        if flat is None:
-            fielddefs = self.typestore.fielddefs[typename][1]
-            flat = not typename.startswith("builtin_interfaces/") and all(
-                desc[0] == Nodetype.BASE for _, desc in fielddefs
-            )
-            known[typename] = flat
-        return flat
+        if typename.startswith("builtin_interfaces/"):
+            return False
+        return all(convert is None for _, convert in self._plan(typename)[1])
 
     def _flat_items(self, typename: str, items: Any) -> list[object]:
         """Sequences of a flat type (the thousands of points of the loop lines and inlier

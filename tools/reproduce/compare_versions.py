@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import hashlib
 import importlib.metadata
 import io
@@ -85,9 +86,11 @@ DISTRIBUTIONS = (
 )
 
 
+@functools.cache
 def environment() -> str:
     """What an output's bytes depend on besides the code and the log: Python, the libraries'
-    versions, the processor (its model and instruction sets: floating-point kernels differ)."""
+    versions, the processor (its model and instruction sets: floating-point kernels differ).
+    Read once a process: it does not change under a run."""
     versions = []
     for name in DISTRIBUTIONS:
         try:
