@@ -673,7 +673,8 @@ def _direction_given(
     m = np.column_stack([p_match, np.ones(len(p_match))]) @ k_inv.T
     turned = q @ rotation.T
     normals = np.cross(turned, m)
-    direction: npt.NDArray[np.float64] = np.linalg.svd(normals)[2][-1]
+    # Only V: the full U of n rows is n x n, most of the cost and never read.
+    direction: npt.NDArray[np.float64] = np.linalg.svd(normals, full_matrices=False)[2][-1]
     # Depths along the rays: lambda_m m = lambda_q R q + t, crossed with m and with R q.
     squared = np.einsum("ij,ij->i", normals, normals)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -693,12 +694,13 @@ def _with_pose(
     mask: npt.NDArray[Any],
 ) -> Verdict:
     """Add R and the direction of t (chirality check over the RANSAC inliers)."""
+    inliers = mask.ravel() != 0
     try:
-        # recoverPose narrows the mask it is given to the chirality check's: ours stays the
-        # fit's, whose inliers the verdict counts and keeps.
-        chirality = mask.copy()
+        # Given the inliers alone: recoverPose counts the points in front of both cameras
+        # among the masked ones only, so the pose is the same, and the outliers it would
+        # triangulate for nothing are most of its cost.
         _, rotation, translation, _ = cv2.recoverPose(
-            essential, p_query, p_match, k, mask=chirality
+            essential, p_query[inliers], p_match[inliers], k
         )
     except cv2.error:
         return verdict
