@@ -7,14 +7,17 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from unittest.mock import patch
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from doseqslam_logs.annotations.reader import read_annotations
-from doseqslam_logs.sinks.visualization import CURRENT_POSE_TOPIC
-from doseqslam_logs.sources.poses import read_poses
+from doseqslam_logs.sinks.visualization import CURRENT_POSE_TOPIC, Trajectory
+from doseqslam_logs.sources.poses import PoseTrack, read_poses
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_logs"
 # Each sample, the schema its output's current pose has.
@@ -69,3 +72,39 @@ def test_the_pose_follows_the_odometry_asked_for_in_its_frame(
     assert np.allclose(current.positions, expected.positions, atol=1e-9)
     odometry = read_poses(SAMPLES / sample, "/odom")
     assert not np.allclose(current.positions, odometry.positions[: len(current)], atol=1e-3)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    steps=st.lists(st.integers(1, 10**9), min_size=1, max_size=40),
+    start=st.integers(0, 2**62),
+    coordinates=st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=3 * 41, max_size=3 * 41),
+    offsets=st.lists(st.integers(-(10**9), 41 * 10**9), min_size=1, max_size=20),
+)
+def test_a_position_is_np_interp_of_the_track_and_reads_no_copy_of_it(
+    steps: list[int], start: int, coordinates: list[float], offsets: list[int]
+) -> None:
+    """The drawn position is np.interp over the track, bit for bit, as it was when each call
+    converted the whole track (int64 times, a strided column) to contiguous float64: that
+    conversion, once per frame, made the write's cost per frame grow with the log. The arrays
+    np.interp reads are now made once, so each call passes the same contiguous float64
+    arrays."""
+    times = start + np.cumsum(np.array([0, *steps], np.int64))
+    positions = np.array(coordinates[: 3 * len(times)], np.float64).reshape(-1, 3)
+    quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (len(times), 1))
+    track = PoseTrack("/odom", times, positions, quaternions, None)
+    trajectory = Trajectory("/odom", "odom", track)
+    for offset in offsets:
+        at = int(times[0]) + offset
+        expected = tuple(float(np.interp(at, times, positions[:, k])) for k in range(3))
+        with patch.object(np, "interp", wraps=np.interp) as spy:
+            assert trajectory.position(at) == expected
+        for call in spy.call_args_list:
+            _, xp, fp = call.args
+            assert xp.dtype == fp.dtype == np.float64
+            assert xp.flags.c_contiguous and fp.flags.c_contiguous
+    # The same arrays at every call (made once): one pair per axis, whatever the calls.
+    with patch.object(np, "interp", wraps=np.interp) as spy:
+        trajectory.position(int(times[0]))
+        trajectory.position(int(times[-1]))
+    assert len({(id(c.args[1]), id(c.args[2])) for c in spy.call_args_list}) == 3

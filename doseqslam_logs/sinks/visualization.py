@@ -35,6 +35,7 @@ again from the input, one ranged read, when its query's time comes.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
@@ -137,9 +138,18 @@ class Trajectory:
 
     def position(self, time_ns: int) -> tuple[float, float, float]:
         """The position at `time_ns`, interpolated (the end poses outside the track)."""
-        times, positions = self.track.times_ns, self.track.positions
-        x, y, z = (float(np.interp(time_ns, times, positions[:, k])) for k in range(3))
+        times, axes = self._interpolated
+        x, y, z = (float(np.interp(time_ns, times, axis)) for axis in axes)
         return x, y, z
+
+    @functools.cached_property
+    def _interpolated(self) -> tuple[npt.NDArray[np.float64], list[npt.NDArray[np.float64]]]:
+        """The times and each axis of the positions as np.interp reads them, made once: given
+        int64 times and a strided column, it made contiguous float64 copies of the whole track
+        at every call, a cost per frame that grew with the log (4.4 s of the 10 Hz hour)."""
+        times = np.ascontiguousarray(self.track.times_ns, dtype=np.float64)
+        positions = self.track.positions
+        return times, [np.ascontiguousarray(positions[:, k], np.float64) for k in range(3)]
 
     def orientation(self, time_ns: int) -> tuple[float, float, float, float]:
         """The orientation (x, y, z, w) at `time_ns`, by slerp (the end poses outside)."""
