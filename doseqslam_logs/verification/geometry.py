@@ -332,10 +332,18 @@ def match_camera_direction(verdict: Verdict) -> npt.NDArray[np.float64] | None:
     without a relative pose."""
     if verdict.rotation_xyzw is None or verdict.translation_direction is None:
         return None
-    rotation = Rotation.from_quat(verdict.rotation_xyzw)  # scalar-last (x, y, z, w), as ours
-    translation = np.asarray(verdict.translation_direction, np.float64)
-    direction: npt.NDArray[np.float64] = rotation.inv().apply(-translation)
-    return direction
+    # R^T v = v - 2w (u x v) + 2 u x (u x v) for the unit quaternion (u, w), in floats: a
+    # bracketing reads this for every frame of its run, and scipy's Rotation costs ten times
+    # more on one vector.
+    x, y, z, w = verdict.rotation_xyzw
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    vx, vy, vz = (-c for c in verdict.translation_direction)
+    cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx  # u x v
+    ccx, ccy, ccz = y * cz - z * cy, z * cx - x * cz, x * cy - y * cx  # u x (u x v)
+    return np.array(
+        [vx - 2 * w * cx + 2 * ccx, vy - 2 * w * cy + 2 * ccy, vz - 2 * w * cz + 2 * ccz]
+    )
 
 
 def bracketed_match(
