@@ -145,8 +145,8 @@ class Trajectory:
     @functools.cached_property
     def _interpolated(self) -> tuple[npt.NDArray[np.float64], list[npt.NDArray[np.float64]]]:
         """The times and each axis of the positions as np.interp reads them, made once: given
-        int64 times and a strided column, it made contiguous float64 copies of the whole track
-        at every call, a cost per frame that grew with the log (4.4 s of the 10 Hz hour)."""
+        int64 times and a strided column, it copies the whole track to contiguous float64 at
+        every call, a cost per frame that would grow with the log."""
         times = np.ascontiguousarray(self.track.times_ns, dtype=np.float64)
         positions = self.track.positions
         return times, [np.ascontiguousarray(positions[:, k], np.float64) for k in range(3)]

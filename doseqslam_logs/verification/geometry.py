@@ -333,8 +333,8 @@ def match_camera_direction(verdict: Verdict) -> npt.NDArray[np.float64] | None:
     if verdict.rotation_xyzw is None or verdict.translation_direction is None:
         return None
     # R^T v = v - 2w (u x v) + 2 u x (u x v) for the unit quaternion (u, w), in floats: a
-    # bracketing reads this for every frame of its run, and scipy's Rotation costs ten times
-    # more on one vector.
+    # bracketing reads this for every frame of its run, and scipy's Rotation objects cost
+    # far more than the arithmetic on one vector.
     x, y, z, w = verdict.rotation_xyzw
     norm = math.sqrt(x * x + y * y + z * z + w * w)
     x, y, z, w = x / norm, y / norm, z / norm, w / norm

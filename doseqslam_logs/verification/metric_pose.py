@@ -926,9 +926,7 @@ def _direction_for(pair: _PairRays, rotation: F64, fallback: F64) -> F64:
     best: F64 = candidates[int(np.argmax(pair.supports(rotation, candidates)))]
     explained = np.abs(pair.distances_px(rotation, best)) <= pair.threshold_px
     if np.count_nonzero(explained) >= 2:
-        best = np.asarray(
-            np.linalg.svd(normals[explained], full_matrices=False)[2][-1], np.float64
-        )
+        best = np.asarray(np.linalg.svd(normals[explained], full_matrices=False)[2][-1], np.float64)
     return best if float(best @ fallback) >= 0 else -best
 
 
