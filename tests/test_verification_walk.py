@@ -101,3 +101,61 @@ def test_side_of_query_follows_the_bracketing_sign() -> None:
     assert side_of_query(ahead) == -1
     assert side_of_query(Verdict(False, 0, 0, "E", "too few matches")) == 0
     assert side_of_query(Verdict(True, 50, 60, "F", "accepted")) == 0  # no pose
+
+
+def moving_geometry(first_place: int, passing: range, flipped=(), turned=()):
+    """`geometry`'s stand-in for a revisit: query QUERY + k is at frame first_place + k of the
+    match's pass. Frames of `flipped` give the wrong sign (a direction estimate gone astray),
+    (query, frame) pairs of `turned` fit with a rotation past the limit."""
+
+    def verify_pair(query, match, params, intrinsics):
+        q, m = int(query.scale), int(match.scale)
+        if m not in passing:
+            return Verdict(False, 0, 40, "E", "too few matches")
+        behind = (m < first_place + q - QUERY) != (m in flipped)
+        t = (0.0, 0.0, 1.0) if behind else (0.0, 0.0, -1.0)
+        inliers = 200 - abs(m - (first_place + q - QUERY))
+        if (q, m) in turned:
+            return Verdict(False, inliers, 300, "E", "rotation over 10 deg", (0, 0, 0, 1), 12.0, t)
+        return Verdict(True, inliers, 300, "E", "accepted", (0, 0, 0, 1), 0.0, t)
+
+    return verify_pair
+
+
+def test_a_lone_flipped_frame_on_the_walk_is_walked_past(monkeypatch) -> None:
+    """A walk that meets one frame whose direction estimate flipped looks one step further:
+    that frame is still on the side it left, so the flip is not the place, and the walk goes
+    on to the true one (4-hour log, query 128062: one flipped frame 3 m past the place was
+    bracketed, 4 m off)."""
+    place = MATCH + R + 10
+    flip = MATCH + R + 4
+    monkeypatch.setattr(stage, "verify_pair", moving_geometry(place, range(DATABASE), [flip]))
+    verifier = Verifier(PARAMS, frames)
+    decision = sequence_decision(1, 10**9, 1, QUERY, match=MATCH, database_size=DATABASE)
+    (result,) = verifier.verify(decision).checks
+    assert result.accepted, result.verdict.reason
+    assert result.refined_match_index in (place - 1, place)
+
+
+def test_a_crossing_between_frames_a_stride_apart_is_looked_at_frame_by_frame(
+    monkeypatch,
+) -> None:
+    """At 10 Hz a tracked check looks at the frames a stride apart: the frame between its
+    crossing's two that is turned past the limit is checked, and the pair is rejected for
+    its rotation (4-hour log, query 133418: 7.5 degrees at a frame between two turned ones,
+    20.3 true)."""
+    first_place = MATCH + 3  # query QUERY + 5 is at frame MATCH + 8, tracked there
+    tracked_query = QUERY + 5
+    turned = {(tracked_query, MATCH + 7)}
+    passing = range(DATABASE)
+    decision = sequence_decision(10, 10**8, 10, QUERY, match=MATCH, database_size=DATABASE)
+    assert stage.query_stride(decision, PARAMS.query_interval_s) == 5
+    monkeypatch.setattr(stage, "verify_pair", moving_geometry(first_place, passing, (), turned))
+    checks = Verifier(PARAMS, frames).verify(decision).checks
+    assert checks[0].accepted and checks[0].refined_match_index == first_place
+    tracked = checks[5]
+    assert not tracked.accepted and tracked.verdict.reason == "rotation over 10 deg"
+    # The same check without the turned frame passes at the place.
+    monkeypatch.setattr(stage, "verify_pair", moving_geometry(first_place, passing))
+    checks = Verifier(PARAMS, frames).verify(decision).checks
+    assert checks[5].accepted and checks[5].refined_match_index == first_place + 5

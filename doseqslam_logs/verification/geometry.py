@@ -375,24 +375,9 @@ def bracketed_match(
     Raises:
         ValueError: `refined` is not one of the frames of `verdicts`.
     """
-    ordered = sorted(verdicts, key=lambda item: item[0])
-    frames = [frame for frame, _ in ordered]
-    if refined not in frames:
-        raise ValueError(f"frame {refined} is not among the checked frames")
+    run = _run(verdicts, refined, max_gap)
     if not _has_pose(verdict):
         return refined, verdict
-    at = frames.index(refined)
-    first, last = at, at
-
-    def joins(i: int, j: int) -> bool:
-        near = max_gap is None or abs(frames[j] - frames[i]) <= max_gap
-        return near and _fitted(ordered[j][1])
-
-    while first > 0 and joins(first, first - 1):
-        first -= 1
-    while last + 1 < len(ordered) and joins(last, last + 1):
-        last += 1
-    run = ordered[first : last + 1]
     ahead = [_ahead(v) for _, v in run]
     i = _crossing([1 if a >= 0 else -1 for a in ahead], [v.inliers for _, v in run])
     if i is None:
@@ -409,6 +394,45 @@ def bracketed_match(
     # The nearer frame, with its own verdict: rejected when the camera there is turned past
     # max_rotation_deg (the place is there, but not seen from the query's heading).
     return nearer
+
+
+def crossing_frames(
+    verdicts: Sequence[tuple[int, Verdict]], refined: int, max_gap: int | None = None
+) -> tuple[int, int] | None:
+    """The two frames of the run around `refined` between which `bracketed_match` places
+    the query (None when it places it nowhere): frames between them that were not checked
+    may hold the place itself.
+
+    Raises:
+        ValueError: `refined` is not one of the frames of `verdicts`.
+    """
+    run = _run(verdicts, refined, max_gap)
+    sides = [1 if _ahead(v) >= 0 else -1 for _, v in run]
+    i = _crossing(sides, [v.inliers for _, v in run])
+    return None if i is None else (run[i][0], run[i + 1][0])
+
+
+def _run(
+    verdicts: Sequence[tuple[int, Verdict]], refined: int, max_gap: int | None
+) -> list[tuple[int, Verdict]]:
+    """The frames next to `refined` (in frame order, itself included) whose fit has a
+    relative pose (`_fitted`), up to a gap of more than `max_gap` frames."""
+    ordered = sorted(verdicts, key=lambda item: item[0])
+    frames = [frame for frame, _ in ordered]
+    if refined not in frames:
+        raise ValueError(f"frame {refined} is not among the checked frames")
+    at = frames.index(refined)
+    first, last = at, at
+
+    def joins(i: int, j: int) -> bool:
+        near = max_gap is None or abs(frames[j] - frames[i]) <= max_gap
+        return near and _fitted(ordered[j][1])
+
+    while first > 0 and joins(first, first - 1):
+        first -= 1
+    while last + 1 < len(ordered) and joins(last, last + 1):
+        last += 1
+    return ordered[first : last + 1]
 
 
 def _crossing(sides: list[int], inliers: list[int]) -> int | None:

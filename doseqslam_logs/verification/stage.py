@@ -98,6 +98,7 @@ from .geometry import (
     Verdict,
     best_verdict,
     bracketed_match,
+    crossing_frames,
     extract_features,
     pair_min_inliers,
     side_of_query,
@@ -513,7 +514,7 @@ class Verifier:
             return best_verdict([(m, v) for m, v in seen.items() if m in window], match)
 
         def placed(refined: int, verdict: Verdict) -> PairCheck:
-            refined, verdict = self._bracketed(window, seen, refined, verdict)
+            refined, verdict = self._bracketed(query, window, seen, refined, verdict)
             if verdict.reason == NOT_BRACKETED:
                 bounds = self._reach(candidate.match_index, database_size)
                 refined, verdict = self._walk(query, window, seen, refined, stride, bounds)
@@ -556,9 +557,11 @@ class Verifier:
         """A check that passed but was not bracketed: every verified frame saw the match camera
         on one side of the query, so the query's place lies beyond the window on the other
         (`side_of_query`). Steps that way from the refined match, `step` frames at a time,
-        while the frames pass with a relative pose, until one lies on the other side; the
-        frames between the last two are then checked and the match bracketed among them. Stops,
-        not bracketed, at a frame that fails or outside `bounds` (`_reach`)."""
+        while the frames pass with a relative pose, until one lies on the other side and the
+        frame a step further does not lie back on the first (one flipped direction estimate
+        is not the place: the walk goes on past it); the frames between the last two are then
+        checked and the match bracketed among them. Stops, not bracketed, at a frame that
+        fails or outside `bounds` (`_reach`)."""
         direction = side_of_query(seen[refined])
         at = refined
         while direction and at + step * direction in bounds:
@@ -567,12 +570,18 @@ class Verifier:
             side = side_of_query(seen[ahead])
             if side == 0:
                 break
+            beyond = ahead + step * direction
+            if side != direction and beyond in bounds:
+                self._check_frames(query, [beyond], seen)
+                if side_of_query(seen[beyond]) == direction:  # a lone flip
+                    at = beyond
+                    continue
             if side != direction:  # the place lies between `at` and `ahead`
                 between = range(min(at, ahead), max(at, ahead) + 1)
                 self._check_frames(query, between, seen)
                 span = range(min(window.start, between.start), max(window.stop, between.stop))
                 nearest = best_verdict([(m, seen[m]) for m in between], at)
-                return self._bracketed(span, seen, *nearest)
+                return self._bracketed(query, span, seen, *nearest)
             at = ahead
         return refined, dataclasses.replace(seen[refined], accepted=False, reason=NOT_BRACKETED)
 
@@ -595,7 +604,7 @@ class Verifier:
             window = self._window(match, decision.database_size)
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
-            refined, verdict = self._bracketed(window, seen, refined, verdict)
+            refined, verdict = self._bracketed(query, window, seen, refined, verdict)
             refined, verdict = self._placed_by_odometry(
                 query, window, seen, refined, verdict, decision.database_size
             )
@@ -788,20 +797,37 @@ class Verifier:
         return [m in from_match and self._hopeless(from_match[m]) for m in between]
 
     def _bracketed(
-        self, window: range, seen: dict[int, Verdict], refined: int, verdict: Verdict
+        self,
+        query: FrameFeatures,
+        window: range,
+        seen: dict[int, Verdict],
+        refined: int,
+        verdict: Verdict,
     ) -> tuple[int, Verdict]:
         """`bracketed_match` over the query's checked frames in the window and within
         BRACKET_RADII * refine_radius of the refined match, when `params.bracket` is on: a
         window that ends just past the true crossing would otherwise keep a noisy sign change
         further on (a figure eight's pair 3.3 m from its place). A run of frames ends at a gap
-        of more than refine_radius unchecked frames.
+        of more than refine_radius unchecked frames. The frames a strided search skipped
+        between the crossing's two are checked before the pair is bracketed: the place lies
+        among them, and one turned past max_rotation_deg there rejects the pair
+        (`bracketed_match`), where the two a stride apart may both be estimated under it (the
+        rotation and a sideways translation are confused at the closest point).
         """
         if not self.params.bracket:
             return refined, verdict
         reach = BRACKET_RADII * self.params.refine_radius
         near = range(refined - reach, refined + reach + 1)
-        checked = [(m, v) for m, v in seen.items() if m in window or m in near]
-        return bracketed_match(checked, refined, verdict, self.params.refine_radius)
+
+        def checked() -> list[tuple[int, Verdict]]:
+            return [(m, v) for m, v in seen.items() if m in window or m in near]
+
+        gap = self.params.refine_radius
+        if verdict.accepted and verdict.translation_direction is not None:
+            crossing = crossing_frames(checked(), refined, gap)
+            if crossing is not None and crossing[1] - crossing[0] > 1:
+                self._check_frames(query, range(crossing[0] + 1, crossing[1]), seen)
+        return bracketed_match(checked(), refined, verdict, gap)
 
     def _hopeless(self, verdict: Verdict) -> bool:
         """Under half of min_inliers: no near copy of this frame is likely to pass."""
