@@ -12,6 +12,7 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import pytest
 from detector_helpers import sequence_decision
+from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.verification import (
     DEFAULT_VERIFICATION,
@@ -20,7 +21,9 @@ from doseqslam_logs.verification import (
     Verdict,
     stage,
 )
-from doseqslam_logs.verification.geometry import side_of_query
+from doseqslam_logs.verification.geometry import Intrinsics, side_of_query
+from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
+from doseqslam_logs.verification.motion import CameraPath
 from doseqslam_logs.verification.stage import WALK_RADII, Verifier
 
 R = DEFAULT_VERIFICATION.refine_radius
@@ -159,3 +162,46 @@ def test_a_crossing_between_frames_a_stride_apart_is_looked_at_frame_by_frame(
     monkeypatch.setattr(stage, "verify_pair", moving_geometry(first_place, passing))
     checks = Verifier(PARAMS, frames).verify(decision).checks
     assert checks[5].accepted and checks[5].refined_match_index == first_place + 5
+
+
+def test_a_crossing_with_one_frame_on_a_side_needs_the_frame_beyond_it(monkeypatch) -> None:
+    """At 10 Hz the window's first frame is the only one behind the query, and its sign is a
+    flipped estimate: the place lies 40 frames before the window. A side of one frame is
+    confirmed a stride beyond it; there the match camera is ahead again, so the window is not
+    bracketed at the flip, and the walk finds the place (generated drives with more corners:
+    a lone flip at a run's end bracketed 2-2.5 m past the place)."""
+    place = MATCH - R - 40
+    flip = MATCH - R
+    monkeypatch.setattr(stage, "verify_pair", moving_geometry(place, range(DATABASE), [flip]))
+    decision = sequence_decision(10, 10**8, 10, QUERY, match=MATCH, database_size=DATABASE)
+    assert stage.query_stride(decision, PARAMS.query_interval_s) > 1
+    result = Verifier(PARAMS, frames).verify(decision).checks[0]
+    assert result.accepted, result.verdict.reason
+    assert result.refined_match_index in (place - 1, place)
+
+
+def test_a_crossing_that_the_odometry_places_metres_off_is_not_the_place(monkeypatch) -> None:
+    """Thirty frames past the place (3 m at 0.1 m a frame) the signs still say "behind": far
+    points and a sideways offset flip the direction over a stretch, and the run's best split
+    lies 3 m past the place. With a pose topic the query is placed from the crossing's frames
+    (PnP with the odometry's baseline, here exact): 3 m from them, so that crossing is not
+    the place, and the pair is accepted where it is placed (generated grey drive with more
+    corners: 2.64 m off)."""
+    step_m, place = 0.1, MATCH - 20
+    positions = np.zeros((DATABASE, 3))
+    positions[:, 0] = step_m * np.arange(DATABASE)
+    optical = Rotation.from_matrix(OPTICAL_TO_BODY).as_quat()
+    path = CameraPath("/odom", positions, np.ones(DATABASE, bool), np.tile(optical, (DATABASE, 1)))
+
+    def placed(self, query, frame, around, fitted):
+        return np.array([0.0, 0.0, step_m * (place + int(query.scale) - QUERY - frame)])
+
+    monkeypatch.setattr(Verifier, "_position", placed)
+    flipped = range(place, place + 30)
+    monkeypatch.setattr(stage, "verify_pair", moving_geometry(place, range(DATABASE), flipped))
+    decision = sequence_decision(1, 10**9, 1, QUERY, match=MATCH, database_size=DATABASE)
+    camera = Intrinsics(100.0, 100.0, 50.0, 50.0)
+    verifier = Verifier(PARAMS, frames, camera, camera_path=path)
+    (result,) = verifier.verify(decision).checks
+    assert result.accepted, result.verdict.reason
+    assert result.refined_match_index == place

@@ -396,12 +396,24 @@ def bracketed_match(
     return nearer
 
 
-def crossing_frames(
+@dataclass(frozen=True)
+class Crossing:
+    """Where `bracketed_match` places the query along the run of frames around the refined
+    match: between frames `before` and `after`, with the run's frames that agree with it on
+    each side (`behind`: before the crossing, the match camera behind the query; `ahead`:
+    after it, ahead)."""
+
+    before: int
+    after: int
+    behind: tuple[int, ...]
+    ahead: tuple[int, ...]
+
+
+def crossing(
     verdicts: Sequence[tuple[int, Verdict]], refined: int, max_gap: int | None = None
-) -> tuple[int, int] | None:
-    """The two frames of the run around `refined` between which `bracketed_match` places
-    the query (None when it places it nowhere): frames between them that were not checked
-    may hold the place itself.
+) -> Crossing | None:
+    """The crossing `bracketed_match` finds among `verdicts` around `refined` (None: no
+    crossing).
 
     Raises:
         ValueError: `refined` is not one of the frames of `verdicts`.
@@ -409,7 +421,12 @@ def crossing_frames(
     run = _run(verdicts, refined, max_gap)
     sides = [1 if _ahead(v) >= 0 else -1 for _, v in run]
     i = _crossing(sides, [v.inliers for _, v in run])
-    return None if i is None else (run[i][0], run[i + 1][0])
+    if i is None:
+        return None
+    frames = [frame for frame, _ in run]
+    behind = tuple(frames[k] for k in range(i + 1) if sides[k] < 0)
+    ahead = tuple(frames[k] for k in range(i + 1, len(run)) if sides[k] > 0)
+    return Crossing(frames[i], frames[i + 1], behind, ahead)
 
 
 def _run(
@@ -488,6 +505,15 @@ def side_of_query(verdict: Verdict) -> int:
     if not _has_pose(verdict):
         return 0
     return 1 if _ahead(verdict) < 0 else -1
+
+
+def crossing_side(verdict: Verdict) -> int:
+    """The side of a crossing a frame lies on, as a run counts it (`bracketed_match`): -1
+    before it (the match camera behind the query, z < 0), +1 after it, 0 without a relative
+    pose. A fit turned past the limit has one and counts."""
+    if not _fitted(verdict):
+        return 0
+    return 1 if _ahead(verdict) >= 0 else -1
 
 
 def _has_pose(verdict: Verdict) -> bool:

@@ -98,7 +98,8 @@ from .geometry import (
     Verdict,
     best_verdict,
     bracketed_match,
-    crossing_frames,
+    crossing,
+    crossing_side,
     extract_features,
     pair_min_inliers,
     side_of_query,
@@ -514,7 +515,9 @@ class Verifier:
             return best_verdict([(m, v) for m, v in seen.items() if m in window], match)
 
         def placed(refined: int, verdict: Verdict) -> PairCheck:
-            refined, verdict = self._bracketed(query, window, seen, refined, verdict)
+            refined, verdict = self._bracketed(
+                query, window, seen, refined, verdict, stride, database_size
+            )
             if verdict.reason == NOT_BRACKETED:
                 bounds = self._reach(candidate.match_index, database_size)
                 refined, verdict = self._walk(query, window, seen, refined, stride, bounds)
@@ -581,7 +584,7 @@ class Verifier:
                 self._check_frames(query, between, seen)
                 span = range(min(window.start, between.start), max(window.stop, between.stop))
                 nearest = best_verdict([(m, seen[m]) for m in between], at)
-                return self._bracketed(query, span, seen, *nearest)
+                return self._bracketed(query, span, seen, *nearest, step, bounds.stop)
             at = ahead
         return refined, dataclasses.replace(seen[refined], accepted=False, reason=NOT_BRACKETED)
 
@@ -604,7 +607,9 @@ class Verifier:
             window = self._window(match, decision.database_size)
             self._check_frames(query, window, seen)
             refined, verdict = best_verdict([(m, seen[m]) for m in window], match)
-            refined, verdict = self._bracketed(query, window, seen, refined, verdict)
+            refined, verdict = self._bracketed(
+                query, window, seen, refined, verdict, 1, decision.database_size
+            )
             refined, verdict = self._placed_by_odometry(
                 query, window, seen, refined, verdict, decision.database_size
             )
@@ -803,6 +808,8 @@ class Verifier:
         seen: dict[int, Verdict],
         refined: int,
         verdict: Verdict,
+        step: int,
+        database_size: int,
     ) -> tuple[int, Verdict]:
         """`bracketed_match` over the query's checked frames in the window and within
         BRACKET_RADII * refine_radius of the refined match, when `params.bracket` is on: a
@@ -823,11 +830,59 @@ class Verifier:
             return [(m, v) for m, v in seen.items() if m in window or m in near]
 
         gap = self.params.refine_radius
-        if verdict.accepted and verdict.translation_direction is not None:
-            crossing = crossing_frames(checked(), refined, gap)
-            if crossing is not None and crossing[1] - crossing[0] > 1:
-                self._check_frames(query, range(crossing[0] + 1, crossing[1]), seen)
-        return bracketed_match(checked(), refined, verdict, gap)
+        if not (verdict.accepted and verdict.translation_direction is not None):
+            return bracketed_match(checked(), refined, verdict, gap)
+        found = crossing(checked(), refined, gap)
+        if found is not None and found.after - found.before > 1:
+            self._check_frames(query, range(found.before + 1, found.after), seen)
+        frame, result = bracketed_match(checked(), refined, verdict, gap)
+        if result.accepted and not self._crossing_holds(
+            query, checked(), refined, seen, step, database_size
+        ):
+            return frame, dataclasses.replace(result, accepted=False, reason=NOT_BRACKETED)
+        return frame, result
+
+    def _crossing_holds(
+        self,
+        query: FrameFeatures,
+        checked: list[tuple[int, Verdict]],
+        refined: int,
+        seen: dict[int, Verdict],
+        step: int,
+        database_size: int,
+    ) -> bool:
+        """Whether the crossing of an accepted bracketing stands two more tests. Above one
+        frame a step (`step` > 1: a high frame rate, neighbouring frames near copies), a side
+        of one frame needs the frame a step beyond it on the same side: one flipped direction
+        estimate at a run's end is not the place. With a pose topic, PnP from the crossing's
+        two frames (`_position`) must not place the query over confirm_distance_m from both
+        where it places it at all: signs can stay flipped over metres of a pass seen before
+        far points from a metre aside, and the run's best split then lies metres past the
+        place. At low frame rates a side of one frame is the common case, and is kept."""
+        found = crossing(checked, refined, self.params.refine_radius)
+        if found is None:
+            return True
+        if step > 1:
+            for side, frames in ((-1, found.behind), (1, found.ahead)):
+                if len(frames) != 1:
+                    continue
+                beyond = frames[0] + side * step
+                if beyond not in range(database_size):
+                    return False
+                self._check_frames(query, [beyond], seen)
+                if crossing_side(seen[beyond]) != side:
+                    return False
+        if self._can_place():
+            reach = self.params.refine_radius
+            distances = []
+            for frame in (found.before, found.after):
+                around = range(max(0, frame - reach), frame + reach + 1)
+                position = self._position(query, frame, around, seen[frame])
+                if position is not None:
+                    distances.append(float(np.linalg.norm(position)))
+            if distances and min(distances) > self.params.confirm_distance_m:
+                return False
+        return True
 
     def _hopeless(self, verdict: Verdict) -> bool:
         """Under half of min_inliers: no near copy of this frame is likely to pass."""
