@@ -407,6 +407,12 @@ class Crossing:
     after: int
     behind: tuple[int, ...]
     ahead: tuple[int, ...]
+    run: int  # frames in the run, those on the wrong side of the crossing included
+
+    @property
+    def wrong(self) -> int:
+        """The run's frames on the wrong side of the crossing."""
+        return self.run - len(self.behind) - len(self.ahead)
 
 
 def crossing(
@@ -426,7 +432,7 @@ def crossing(
     frames = [frame for frame, _ in run]
     behind = tuple(frames[k] for k in range(i + 1) if sides[k] < 0)
     ahead = tuple(frames[k] for k in range(i + 1, len(run)) if sides[k] > 0)
-    return Crossing(frames[i], frames[i + 1], behind, ahead)
+    return Crossing(frames[i], frames[i + 1], behind, ahead, len(run))
 
 
 def _run(

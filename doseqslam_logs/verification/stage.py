@@ -854,11 +854,13 @@ class Verifier:
         """Whether the crossing of an accepted bracketing stands two more tests. Above one
         frame a step (`step` > 1: a high frame rate, neighbouring frames near copies), a side
         of one frame needs the frame a step beyond it on the same side: one flipped direction
-        estimate at a run's end is not the place. With a pose topic, PnP from the crossing's
-        two frames (`_position`) must not place the query over confirm_distance_m from both
-        where it places it at all: signs can stay flipped over metres of a pass seen before
-        far points from a metre aside, and the run's best split then lies metres past the
-        place. At low frame rates a side of one frame is the common case, and is kept."""
+        estimate at a run's end is not the place. With a pose topic, where the run has frames
+        on the wrong side of its crossing, PnP from the crossing's two frames (`_position`)
+        must not place the query over confirm_distance_m from both where it places it at
+        all: signs can stay flipped over metres of a pass seen before far points from a metre
+        aside, and the run's best split then lies metres past the place. A clean split is not
+        placed: PnP costs several frame pairs' CPU, and clean splits are the common case. At
+        low frame rates a side of one frame is common too, and is kept."""
         found = crossing(checked, refined, self.params.refine_radius)
         if found is None:
             return True
@@ -872,7 +874,7 @@ class Verifier:
                 self._check_frames(query, [beyond], seen)
                 if crossing_side(seen[beyond]) != side:
                     return False
-        if self._can_place():
+        if found.wrong and self._can_place():
             reach = self.params.refine_radius
             distances = []
             for frame in (found.before, found.after):
