@@ -12,6 +12,8 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import pytest
 from detector_helpers import sequence_decision
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from doseqslam_logs.verification import (
@@ -21,7 +23,12 @@ from doseqslam_logs.verification import (
     Verdict,
     stage,
 )
-from doseqslam_logs.verification.geometry import Intrinsics, side_of_query
+from doseqslam_logs.verification.geometry import (
+    Intrinsics,
+    bracketed_match,
+    crossing,
+    side_of_query,
+)
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
 from doseqslam_logs.verification.motion import CameraPath
 from doseqslam_logs.verification.stage import WALK_RADII, Verifier
@@ -205,3 +212,30 @@ def test_a_crossing_that_the_odometry_places_metres_off_is_not_the_place(monkeyp
     (result,) = verifier.verify(decision).checks
     assert result.accepted, result.verdict.reason
     assert result.refined_match_index == place
+
+
+@given(
+    st.lists(st.floats(-1.0, 1.0), min_size=1, max_size=30),
+    st.lists(st.integers(30, 300), min_size=30, max_size=30),
+    st.data(),
+)
+def test_the_crossing_is_the_one_the_bracketing_picks_from(zs, inliers, data) -> None:
+    """`crossing` names the two frames `bracketed_match` chooses between, and the frames of
+    the run on either side that agree with it: a run of random directions (z of the match
+    camera), each frame passing with a pose."""
+    verdicts = [
+        (m, Verdict(True, inliers[m], 300, "E", "accepted", (0, 0, 0, 1), 0.0, (0.0, 0.0, -z)))
+        for m, z in enumerate(zs)
+    ]
+    refined = data.draw(st.integers(0, len(zs) - 1))
+    found = crossing(verdicts, refined)
+    frame, verdict = bracketed_match(verdicts, refined, verdicts[refined][1])
+    assert (found is None) == (verdict.reason == NOT_BRACKETED)
+    if found is not None:
+        assert found.after == found.before + 1 and frame in (found.before, found.after)
+        assert all(zs[m] < 0 for m in found.behind) and all(zs[m] >= 0 for m in found.ahead)
+        assert max(found.behind) == found.before and min(found.ahead) == found.after
+        wrong = sum(zs[m] >= 0 for m in range(found.after)) + sum(
+            zs[m] < 0 for m in range(found.after, len(zs))
+        )
+        assert found.wrong == wrong

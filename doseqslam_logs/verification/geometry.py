@@ -425,7 +425,7 @@ def crossing(
         ValueError: `refined` is not one of the frames of `verdicts`.
     """
     run = _run(verdicts, refined, max_gap)
-    sides = [1 if _ahead(v) >= 0 else -1 for _, v in run]
+    sides = [crossing_side(v) for _, v in run]  # every frame of a run has a relative pose
     i = _crossing(sides, [v.inliers for _, v in run])
     if i is None:
         return None

@@ -878,7 +878,7 @@ class Verifier:
             reach = self.params.refine_radius
             distances = []
             for frame in (found.before, found.after):
-                around = range(max(0, frame - reach), frame + reach + 1)
+                around = range(max(0, frame - reach), min(frame + reach + 1, database_size))
                 position = self._position(query, frame, around, seen[frame])
                 if position is not None:
                     distances.append(float(np.linalg.norm(position)))
