@@ -378,12 +378,13 @@ def bracketed_match(
     run = _run(verdicts, refined, max_gap)
     if not _has_pose(verdict):
         return refined, verdict
-    ahead = [_ahead(v) for _, v in run]
-    i = _crossing([1 if a >= 0 else -1 for a in ahead], [v.inliers for _, v in run])
-    if i is None:
+    found = _crossing_in(run)
+    if found is None:
         return refined, dataclasses.replace(verdict, accepted=False, reason=NOT_BRACKETED)
+    in_run = dict(run)
+    before, after = (found.before, in_run[found.before]), (found.after, in_run[found.after])
     nearer, other = (
-        (run[i], run[i + 1]) if abs(ahead[i]) < abs(ahead[i + 1]) else (run[i + 1], run[i])
+        (before, after) if abs(_ahead(before[1])) < abs(_ahead(after[1])) else (after, before)
     )
     if not other[1].accepted and nearer[1].accepted:
         # The place lies between a frame turned past max_rotation_deg and one that is not: the
@@ -424,8 +425,12 @@ def crossing(
     Raises:
         ValueError: `refined` is not one of the frames of `verdicts`.
     """
-    run = _run(verdicts, refined, max_gap)
-    sides = [crossing_side(v) for _, v in run]  # every frame of a run has a relative pose
+    return _crossing_in(_run(verdicts, refined, max_gap))
+
+
+def _crossing_in(run: list[tuple[int, Verdict]]) -> Crossing | None:
+    """The crossing of a run (`_run`), None where `_crossing` finds none."""
+    sides = [_side(v) for _, v in run]
     i = _crossing(sides, [v.inliers for _, v in run])
     if i is None:
         return None
@@ -508,17 +513,19 @@ def side_of_query(verdict: Verdict) -> int:
     at later frames (the match camera is behind the query, z < 0: `bracketed_match`'s sign
     rule), -1 at earlier ones, 0 for a verdict that did not pass with a relative pose. Assumes
     a forward-looking camera driven the same way, as `bracketed_match` does."""
-    if not _has_pose(verdict):
-        return 0
-    return 1 if _ahead(verdict) < 0 else -1
+    return -_side(verdict) if _has_pose(verdict) else 0
 
 
 def crossing_side(verdict: Verdict) -> int:
     """The side of a crossing a frame lies on, as a run counts it (`bracketed_match`): -1
     before it (the match camera behind the query, z < 0), +1 after it, 0 without a relative
     pose. A fit turned past the limit has one and counts."""
-    if not _fitted(verdict):
-        return 0
+    return _side(verdict) if _fitted(verdict) else 0
+
+
+def _side(verdict: Verdict) -> int:
+    """A run's sign of a frame: -1 where the match camera is behind the query (z < 0), else
+    +1 (z = 0 too, and a frame without a direction, whose z reads 0)."""
     return 1 if _ahead(verdict) >= 0 else -1
 
 

@@ -92,6 +92,7 @@ from .. import waiting
 from ..detector.events import Candidate, SequenceDecision
 from .geometry import (
     NOT_BRACKETED,
+    Crossing,
     FrameFeatures,
     GrayImage,
     Intrinsics,
@@ -762,10 +763,16 @@ class Verifier:
         a pair not bracketed may move metres from the frame it was placed from, along a
         baseline on one side only (a revisit of the first frames), and a position is trusted
         where it was measured."""
+        distance = self._placed_distance(query, frame, around, seen)
+        return distance is not None and distance <= self.params.confirm_distance_m
+
+    def _placed_distance(
+        self, query: FrameFeatures, frame: int, around: range, seen: dict[int, Verdict]
+    ) -> float | None:
+        """How far from `frame` PnP from it places the query camera (metres; None where it
+        does not place it)."""
         position = self._position(query, frame, around, seen[frame])
-        return position is not None and float(np.linalg.norm(position)) <= (
-            self.params.confirm_distance_m
-        )
+        return None if position is None else float(np.linalg.norm(position))
 
     def _is_turned(self, verdict: Verdict) -> bool:
         """Turned past max_rotation_deg (accepted by the fit only up to confirmed_rotation_deg)."""
@@ -836,17 +843,18 @@ class Verifier:
         if found is not None and found.after - found.before > 1:
             self._check_frames(query, range(found.before + 1, found.after), seen)
         frame, result = bracketed_match(checked(), refined, verdict, gap)
-        if result.accepted and not self._crossing_holds(
-            query, checked(), refined, seen, step, database_size
-        ):
+        if not result.accepted:
+            return frame, result
+        found = crossing(checked(), refined, gap)
+        assert found is not None  # an accepted bracketing has a crossing
+        if not self._crossing_holds(query, found, seen, step, database_size):
             return frame, dataclasses.replace(result, accepted=False, reason=NOT_BRACKETED)
         return frame, result
 
     def _crossing_holds(
         self,
         query: FrameFeatures,
-        checked: list[tuple[int, Verdict]],
-        refined: int,
+        found: Crossing,
         seen: dict[int, Verdict],
         step: int,
         database_size: int,
@@ -861,9 +869,6 @@ class Verifier:
         aside, and the run's best split then lies metres past the place. A clean split is not
         placed: PnP costs several frame pairs' CPU, and clean splits are the common case. At
         low frame rates a side of one frame is common too, and is kept."""
-        found = crossing(checked, refined, self.params.refine_radius)
-        if found is None:
-            return True
         if step > 1:
             for side, frames in ((-1, found.behind), (1, found.ahead)):
                 if len(frames) != 1:
@@ -875,13 +880,11 @@ class Verifier:
                 if crossing_side(seen[beyond]) != side:
                     return False
         if found.wrong and self._can_place():
-            reach = self.params.refine_radius
-            distances = []
-            for frame in (found.before, found.after):
-                around = range(max(0, frame - reach), min(frame + reach + 1, database_size))
-                position = self._position(query, frame, around, seen[frame])
-                if position is not None:
-                    distances.append(float(np.linalg.norm(position)))
+            placed = [
+                self._placed_distance(query, frame, self._window(frame, database_size), seen)
+                for frame in (found.before, found.after)
+            ]
+            distances = [d for d in placed if d is not None]
             if distances and min(distances) > self.params.confirm_distance_m:
                 return False
         return True
