@@ -239,3 +239,26 @@ def test_the_crossing_is_the_one_the_bracketing_picks_from(zs, inliers, data) ->
             zs[m] < 0 for m in range(found.after, len(zs))
         )
         assert found.wrong == wrong
+
+
+def test_at_a_low_rate_a_side_of_one_frame_contradicted_beyond_it_is_no_crossing(
+    monkeypatch,
+) -> None:
+    """At 1 frame a second every frame of the window is checked, and a side of one frame is
+    common (its neighbour metres away fails), so it is kept where the frame beyond it is
+    silent; where that frame fits and lies on the other side, the lone frame is a flipped
+    estimate and not the place (drive_parked with FAST 10: a flip among parked frames 5 m
+    from the query was bracketed)."""
+    place = MATCH - R - 40
+    flip = MATCH - R
+    decision = sequence_decision(1, 10**9, 1, QUERY, match=MATCH, database_size=DATABASE)
+    assert stage.query_stride(decision, PARAMS.query_interval_s) == 1
+    monkeypatch.setattr(stage, "verify_pair", moving_geometry(place, range(DATABASE), [flip]))
+    result = Verifier(PARAMS, frames).verify(decision).checks[0]
+    assert result.refined_match_index not in (flip, flip + 1)
+    # The frame beyond the flip silent (it fails): the lone frame is kept as a side.
+    silent = range(flip, DATABASE)
+    monkeypatch.setattr(stage, "verify_pair", moving_geometry(place, silent, [flip]))
+    result = Verifier(PARAMS, frames).verify(decision).checks[0]
+    assert result.accepted, result.verdict.reason
+    assert result.refined_match_index in (flip, flip + 1)

@@ -859,26 +859,17 @@ class Verifier:
         step: int,
         database_size: int,
     ) -> bool:
-        """Whether the crossing of an accepted bracketing stands two more tests. Above one
-        frame a step (`step` > 1: a high frame rate, neighbouring frames near copies), a side
-        of one frame needs the frame a step beyond it on the same side: one flipped direction
-        estimate at a run's end is not the place. With a pose topic, where the run has frames
-        on the wrong side of its crossing, PnP from the crossing's two frames (`_position`)
-        must not place the query over confirm_distance_m from both where it places it at
-        all: signs can stay flipped over metres of a pass seen before far points from a metre
-        aside, and the run's best split then lies metres past the place. A clean split is not
-        placed: PnP costs several frame pairs' CPU, and clean splits are the common case. At
-        low frame rates a side of one frame is common too, and is kept."""
-        if step > 1:
-            for side, frames in ((-1, found.behind), (1, found.ahead)):
-                if len(frames) != 1:
-                    continue
-                beyond = frames[0] + side * step
-                if beyond not in range(database_size):
-                    return False
-                self._check_frames(query, [beyond], seen)
-                if crossing_side(seen[beyond]) != side:
-                    return False
+        """Whether the crossing of an accepted bracketing stands two more tests. A side of one
+        frame is checked against the frame a step beyond it (`_lone_sides_hold`): one flipped
+        direction estimate at a run's end is not the place. With a pose topic, where the run
+        has frames on the wrong side of its crossing, PnP from the crossing's two frames
+        (`_position`) must not place the query over confirm_distance_m from both where it
+        places it at all: signs can stay flipped over metres of a pass seen before far points
+        from a metre aside, and the run's best split then lies metres past the place. A clean
+        split is not placed: PnP costs several frame pairs' CPU, and clean splits are the
+        common case."""
+        if not self._lone_sides_hold(query, found, seen, step, database_size):
+            return False
         if found.wrong and self._can_place():
             placed = [
                 self._placed_distance(query, frame, self._window(frame, database_size), seen)
@@ -886,6 +877,34 @@ class Verifier:
             ]
             distances = [d for d in placed if d is not None]
             if distances and min(distances) > self.params.confirm_distance_m:
+                return False
+        return True
+
+    def _lone_sides_hold(
+        self,
+        query: FrameFeatures,
+        found: Crossing,
+        seen: dict[int, Verdict],
+        step: int,
+        database_size: int,
+    ) -> bool:
+        """Whether each side of one frame at `found` stands against the frame `step` beyond
+        it. Above one frame a step (neighbours near copies) that frame must be on the same
+        side. At one (low rates) a side of one frame is common, its neighbour metres away
+        and failing, so that frame may be silent, but not on the other side: a flipped
+        estimate among frames of one spot (a parked pass seen from 5 m) is no crossing."""
+        confirmed = step > 1
+        for side, frames in ((-1, found.behind), (1, found.ahead)):
+            if len(frames) != 1:
+                continue
+            beyond = frames[0] + side * step
+            if beyond not in range(database_size):
+                if confirmed:
+                    return False
+                continue
+            self._check_frames(query, [beyond], seen)
+            seen_side = crossing_side(seen[beyond])
+            if seen_side != side and (confirmed or seen_side != 0):
                 return False
         return True
 
