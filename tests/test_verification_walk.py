@@ -31,7 +31,7 @@ from doseqslam_logs.verification.geometry import (
 )
 from doseqslam_logs.verification.metric_pose import OPTICAL_TO_BODY
 from doseqslam_logs.verification.motion import CameraPath
-from doseqslam_logs.verification.stage import WALK_RADII, Verifier
+from doseqslam_logs.verification.stage import WALK_RADII, Verifier, lone_side_holds
 
 R = DEFAULT_VERIFICATION.refine_radius
 # The stand-in geometry passes every frame of `passing`, those between match and query too, as a
@@ -262,3 +262,28 @@ def test_at_a_low_rate_a_side_of_one_frame_contradicted_beyond_it_is_no_crossing
     result = Verifier(PARAMS, frames).verify(decision).checks[0]
     assert result.accepted, result.verdict.reason
     assert result.refined_match_index in (flip, flip + 1)
+
+
+@pytest.mark.parametrize(
+    ("beyond", "confirmed", "holds"),
+    [
+        ("same", True, True),
+        ("other", True, False),
+        ("silent", True, False),
+        ("past the ends", True, False),
+        ("same", False, True),
+        ("other", False, False),
+        ("silent", False, True),
+        ("past the ends", False, True),
+    ],
+)
+def test_a_side_of_one_frame_against_the_frame_beyond_it(beyond, confirmed, holds) -> None:
+    """Above 2 Hz the frame beyond must confirm the side; at low rates it must not deny it."""
+    side = -1  # before the crossing: the match camera behind the query (translation +z)
+    verdicts = {
+        "same": Verdict(True, 50, 60, "E", "accepted", (0, 0, 0, 1), 0.0, (0.0, 0.0, 1.0)),
+        "other": Verdict(True, 50, 60, "E", "accepted", (0, 0, 0, 1), 0.0, (0.0, 0.0, -1.0)),
+        "silent": Verdict(False, 3, 40, "E", "too few matches"),
+        "past the ends": None,
+    }
+    assert lone_side_holds(side, verdicts[beyond], confirmed) is holds

@@ -264,6 +264,19 @@ class VerificationStats:
             setattr(self, item.name, getattr(self, item.name) + getattr(other, item.name))
 
 
+def lone_side_holds(side: int, beyond: Verdict | None, confirmed: bool) -> bool:
+    """Whether a crossing's side of one frame (`side`: -1 before it, +1 after) stands
+    against the verdict of the frame a step beyond it (None: past the database's ends).
+    `confirmed` (above one frame a step, neighbours near copies): that frame must lie on the
+    same side. Else (low rates, where a side of one frame is common, its neighbour metres
+    away and failing) it may be silent, but not on the other side: a flipped estimate among
+    frames of one spot (a parked pass seen from 5 m) is no crossing."""
+    if beyond is None:
+        return not confirmed
+    found = crossing_side(beyond)
+    return found == side or (not confirmed and found == 0)
+
+
 def query_stride(decision: SequenceDecision, interval_s: float) -> int:
     """Candidates per checked one: the frames of the sequence within `interval_s` (>= 1).
 
@@ -860,7 +873,7 @@ class Verifier:
         database_size: int,
     ) -> bool:
         """Whether the crossing of an accepted bracketing stands two more tests. A side of one
-        frame is checked against the frame a step beyond it (`_lone_sides_hold`): one flipped
+        frame is checked against the frame a step beyond it (`lone_side_holds`): one flipped
         direction estimate at a run's end is not the place. With a pose topic, where the run
         has frames on the wrong side of its crossing, PnP from the crossing's two frames
         (`_position`) must not place the query over confirm_distance_m from both where it
@@ -868,8 +881,14 @@ class Verifier:
         from a metre aside, and the run's best split then lies metres past the place. A clean
         split is not placed: PnP costs several frame pairs' CPU, and clean splits are the
         common case."""
-        if not self._lone_sides_hold(query, found, seen, step, database_size):
-            return False
+        for side, frames in ((-1, found.behind), (1, found.ahead)):
+            if len(frames) != 1:
+                continue
+            beyond = frames[0] + side * step
+            if beyond in range(database_size):
+                self._check_frames(query, [beyond], seen)
+            if not lone_side_holds(side, seen.get(beyond), confirmed=step > 1):
+                return False
         if found.wrong and self._can_place():
             placed = [
                 self._placed_distance(query, frame, self._window(frame, database_size), seen)
@@ -877,34 +896,6 @@ class Verifier:
             ]
             distances = [d for d in placed if d is not None]
             if distances and min(distances) > self.params.confirm_distance_m:
-                return False
-        return True
-
-    def _lone_sides_hold(
-        self,
-        query: FrameFeatures,
-        found: Crossing,
-        seen: dict[int, Verdict],
-        step: int,
-        database_size: int,
-    ) -> bool:
-        """Whether each side of one frame at `found` stands against the frame `step` beyond
-        it. Above one frame a step (neighbours near copies) that frame must be on the same
-        side. At one (low rates) a side of one frame is common, its neighbour metres away
-        and failing, so that frame may be silent, but not on the other side: a flipped
-        estimate among frames of one spot (a parked pass seen from 5 m) is no crossing."""
-        confirmed = step > 1
-        for side, frames in ((-1, found.behind), (1, found.ahead)):
-            if len(frames) != 1:
-                continue
-            beyond = frames[0] + side * step
-            if beyond not in range(database_size):
-                if confirmed:
-                    return False
-                continue
-            self._check_frames(query, [beyond], seen)
-            seen_side = crossing_side(seen[beyond])
-            if seen_side != side and (confirmed or seen_side != 0):
                 return False
         return True
 
