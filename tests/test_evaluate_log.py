@@ -25,7 +25,9 @@ from doseqslam_logs.evaluation import log_run
 from doseqslam_logs.evaluation.groundtruth import GroundTruth, load_ground_truth
 from doseqslam_logs.evaluation.metrics import evaluate
 from doseqslam_logs.evaluation.pose_ground_truth import (
+    FramePoses,
     LoopCriteria,
+    PoseGroundTruth,
     frame_poses,
     loop_cells,
     pose_ground_truth,
@@ -240,7 +242,9 @@ def test_pose_ground_truth_of_the_log_is_the_committed_one(annotated, capsys) ->
     for travel in (20.0, None):  # the travel condition never binds on drive_loops
         gt = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, travel))
         assert gt.nnz == committed.nnz == 810
-        assert (gt.matrix != committed.matrix).nnz == 0
+        assert gt.n_loop_events == committed.n_loop_events
+        assert np.array_equal(gt.query_rows(), committed.query_rows())
+        assert (gt.materialized().matrix != committed.matrix).nnz == 0
     code, stdout, _ = run_cli(capsys, "evaluate", out, "--gt-topic", POSES, *SAMPLE_GT, "--json")
     doc = json.loads(stdout)
     _, file_out, _ = run_cli(capsys, "evaluate", out, "--gt", GT, "--json")
@@ -265,8 +269,8 @@ def test_min_travel_keeps_a_parked_camera_from_revisiting_itself() -> None:
         read_poses(log, POSES), FrameTimes.from_pairs(pairs).detector_times_ns("header")
     )
     committed = load_ground_truth(SAMPLES / "drive_parked.gt.npz")
-    strict = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, 20.0))
-    loose = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, None))
+    strict = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, 20.0)).materialized()
+    loose = pose_ground_truth(poses, LoopCriteria(2.0, 40.0, 20.0, None)).materialized()
     assert (strict.matrix != committed.matrix).nnz == 0
     assert loose.nnz > committed.nnz and (committed.matrix > loose.matrix).nnz == 0
 
@@ -418,6 +422,61 @@ def test_loop_cells_match_brute_force(data, n, radius, age, heading, travel, bat
     got = list(zip(rows.tolist(), cols.tolist(), strict=True))
     assert got == sorted(got)  # row-major order, no duplicates
     assert set(got) == brute_force_cells(times, xyz, criteria, yaw) and len(got) == len(set(got))
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    data=st.data(),
+    n=st.integers(0, 30),
+    heading=st.one_of(st.none(), st.floats(0.0, 180.0)),
+    travel=st.one_of(st.none(), st.floats(0.0, 6.0)),
+    batch=st.integers(1, 40),
+    tolerance=st.integers(0, 3),
+)
+def test_pose_ground_truth_answers_as_its_cells(data, n, heading, travel, batch, tolerance) -> None:
+    """Answered from the poses, it says what the matrix of every cell says, pair by pair."""
+    coordinate = st.floats(-2.0, 2.0, allow_nan=False)
+    xyz = np.array(
+        data.draw(st.lists(st.tuples(coordinate, coordinate, coordinate), min_size=n, max_size=n)),
+        dtype=np.float64,
+    ).reshape(n, 3)
+    if n:
+        xyz[data.draw(st.lists(st.integers(0, n - 1), max_size=3))] = np.nan  # no pose
+    times = np.cumsum(np.array(data.draw(st.lists(st.integers(0, 10**9), min_size=n, max_size=n))))
+    yaw = np.array(data.draw(st.lists(st.floats(-4.0, 4.0), min_size=n, max_size=n)))
+    poses = FramePoses(times.astype(np.int64), xyz, yaw, np.isfinite(xyz).all(axis=1))
+    criteria = LoopCriteria(1.5, 1.0, heading, travel)
+    truth = PoseGroundTruth(poses, criteria, batch_neighbours=batch)
+    rows, cols = loop_cells(times, xyz, criteria, yaw)
+    cells = GroundTruth(n, rows, cols)
+    assert truth.nnz == cells.nnz and truth.n_loop_events == cells.n_loop_events
+    assert np.array_equal(truth.query_rows(), cells.query_rows())
+    if n:
+        q = np.array(data.draw(st.lists(st.integers(0, n - 1), max_size=20)), dtype=np.int64)
+        m = np.array(data.draw(st.lists(st.integers(0, n - 1), min_size=q.size, max_size=q.size)))
+        assert np.array_equal(truth.are_true(q, m, tolerance), cells.are_true(q, m, tolerance))
+    with pytest.raises(GroundTruthError, match="outside"):
+        truth.is_true(n, 0)
+
+
+def test_pose_ground_truth_holds_no_loop_cells() -> None:
+    """A camera parked for 2,000 frames revisits itself in 2 million cells (the 8-hour
+    generated log: 240 million): the ground truth's memory follows the frames, not them."""
+    import tracemalloc
+
+    n = 2_000
+    poses = FramePoses(
+        np.arange(n, dtype=np.int64) * 10**8, np.zeros((n, 3)), np.zeros(n), np.ones(n, bool)
+    )
+    tracemalloc.start()
+    try:
+        truth = PoseGroundTruth(poses, LoopCriteria(2.0, 0.0), batch_neighbours=1 << 15)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert truth.nnz == n * (n - 1) // 2 and truth.n_loop_events == n - 1
+    assert truth.is_true(n - 1, 0) and not truth.is_true(0, 1)
+    assert peak < 8 << 20  # every cell held (loop_cells into a GroundTruth): 76 MB
 
 
 def test_frames_without_a_pose_have_no_loop() -> None:

@@ -1,13 +1,17 @@
-"""Ground-truth loop matrices: loading (.mat, .npy, .npz, .bmp, .png) and sparse look-ups."""
+"""Ground-truth loop matrices: loading (.mat, .npy, .npz, .bmp, .png) and sparse look-ups.
+
+`LoopTruth` is what scoring asks of a ground truth; `GroundTruth` (a matrix, every loop cell
+held) and `pose_ground_truth.PoseGroundTruth` (answered from poses) both provide it.
+"""
 
 from __future__ import annotations
 
 import os
 import zipfile
 import zlib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -27,6 +31,47 @@ BoolArray = npt.NDArray[np.bool_]
 _BLOCK_BYTES = 1 << 23
 
 _IN_MEMORY = "<memory>"
+
+
+class LoopTruth(Protocol):
+    """Which frame pairs are loops: what the metrics, the plots and `diff` ask of a ground
+    truth. Rows are query (later) frames, columns earlier ones."""
+
+    source: str
+    transposed: bool  # read transposed from its file (see `load_ground_truth`)
+
+    @property
+    def n_frames(self) -> int:
+        """N, the frames covered."""
+        ...
+
+    @property
+    def nnz(self) -> int:
+        """Number of loop cells."""
+        ...
+
+    @property
+    def n_loop_events(self) -> int:
+        """Query frames with at least one loop: the recall denominator."""
+        ...
+
+    def query_rows(self) -> IntArray:
+        """Sorted query frames with at least one loop."""
+        ...
+
+    def is_true(self, query: int, match: int, tolerance: int = 0) -> bool:
+        """Whether (query, match +- tolerance) holds a loop cell."""
+        ...
+
+    def are_true(
+        self, queries: npt.ArrayLike, matches: npt.ArrayLike, tolerance: int = 0
+    ) -> BoolArray:
+        """`is_true` of each (queries[i], matches[i])."""
+        ...
+
+    def cell_batches(self) -> Iterator[tuple[IntArray, IntArray]]:
+        """(rows, columns) of every loop cell, a bounded batch at a time."""
+        ...
 
 
 class GroundTruth:
@@ -141,6 +186,11 @@ class GroundTruth:
     def matrix(self) -> Any:
         """The loop matrix as a boolean `scipy.sparse.csr_array` (do not modify it)."""
         return self._matrix
+
+    def cell_batches(self) -> Iterator[tuple[IntArray, IntArray]]:
+        """(rows, columns) of the loop cells: one batch, as they are all held anyway."""
+        n = max(self._n, 1)
+        yield self._keys // n, self._keys % n
 
     def query_rows(self) -> IntArray:
         """Sorted indices of the rows (query frames) that have at least one loop cell."""

@@ -24,7 +24,7 @@ from ..errors import UsageError
 from ..sinks.atomic import check_output_path
 from ..sources import open_source
 from ..sources.poses import PoseTrack, read_poses
-from .groundtruth import GroundTruth, load_ground_truth
+from .groundtruth import LoopTruth, load_ground_truth
 from .metrics import Evaluation
 from .pose_ground_truth import (
     FramePoses,
@@ -60,7 +60,7 @@ class LogReport:
     ground_truth: dict[str, Any]  # what the ground truth was (kind, file or topic, criteria)
     result: LogEvaluation
     plots: list[Path]
-    truth: GroundTruth  # what `result` was scored against (diff labels pairs with it)
+    truth: LoopTruth  # what `result` was scored against (diff labels pairs with it)
 
     @property
     def reported(self) -> Evaluation:
@@ -186,7 +186,7 @@ class _Inputs:
         return frame_poses(self.track(topic), times)
 
 
-def _ground_truth(inputs: _Inputs) -> tuple[GroundTruth, dict[str, Any]]:
+def _ground_truth(inputs: _Inputs) -> tuple[LoopTruth, dict[str, Any]]:
     options, log = inputs.options, inputs.log
     if options.gt is not None:
         gt = load_ground_truth(options.gt, options.gt_variable)
@@ -198,7 +198,7 @@ def _ground_truth(inputs: _Inputs) -> tuple[GroundTruth, dict[str, Any]]:
     poses = inputs.poses_at_frames(topic)
     inputs.frame_poses = poses
     name = f"{options.gt_topic} ({criteria.describe()})"
-    gt = pose_ground_truth(poses, criteria, source=name)
+    truth = pose_ground_truth(poses, criteria, source=name)
     info = {
         "kind": "poses",
         "topic": options.gt_topic,
@@ -208,7 +208,7 @@ def _ground_truth(inputs: _Inputs) -> tuple[GroundTruth, dict[str, Any]]:
         "min_travel_m": options.min_travel,
         "frames_without_pose": int(np.count_nonzero(~poses.has_pose)),
     }
-    return gt, info
+    return truth, info
 
 
 def _renamed(result: LogEvaluation, name: str) -> LogEvaluation:
@@ -261,7 +261,7 @@ def _json_document(
 # -- pictures -----------------------------------------------------------------------------
 
 
-def detections(plots: ModuleType, log: AnnotatedLog, gt: GroundTruth, tolerance: int) -> list[Any]:
+def detections(plots: ModuleType, log: AnnotatedLog, gt: LoopTruth, tolerance: int) -> list[Any]:
     """Every pair decided on, true or false (rejected and skipped ones, on
     /doseqslam/candidates, marked so)."""
     pairs = [(lc.query.index, lc.matched.index) for lc in log.loop_closures]
@@ -276,7 +276,7 @@ def detections(plots: ModuleType, log: AnnotatedLog, gt: GroundTruth, tolerance:
 PICTURES = ("pr_curve.png", "difference_matrix.png", "trajectory.png")
 
 
-def _draw(plots: ModuleType, inputs: _Inputs, gt: GroundTruth, result: LogEvaluation) -> list[Path]:
+def _draw(plots: ModuleType, inputs: _Inputs, gt: LoopTruth, result: LogEvaluation) -> list[Path]:
     from .difference_matrix import difference_matrix
 
     options, log = inputs.options, inputs.log

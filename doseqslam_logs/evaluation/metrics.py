@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from ..detector.events import SequenceDecision
 from ..errors import GroundTruthError, UsageError
-from .groundtruth import GroundTruth
+from .groundtruth import LoopTruth
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -157,7 +157,7 @@ class _Sweep:
 
 def evaluate(
     decisions: Sequence[SequenceDecision],
-    gt: GroundTruth,
+    gt: LoopTruth,
     threshold: float,
     tolerance: int = 0,
     frame_times_ns: npt.ArrayLike | None = None,
@@ -207,7 +207,7 @@ def evaluate(
 
 
 def _coverage(
-    found: IntArray, gt: GroundTruth, frame_times_ns: npt.ArrayLike | None
+    found: IntArray, gt: LoopTruth, frame_times_ns: npt.ArrayLike | None
 ) -> tuple[RevisitCoverage, ...]:
     if frame_times_ns is None:
         return ()
@@ -229,7 +229,7 @@ def _coverage(
 # -- the sweep ----------------------------------------------------------------------------
 
 
-def _check_frame_count(decisions: Sequence[SequenceDecision], gt: GroundTruth) -> None:
+def _check_frame_count(decisions: Sequence[SequenceDecision], gt: LoopTruth) -> None:
     """A run longer than the ground truth means they do not belong together: say so."""
     indices = [d.last_index for d in decisions]
     indices += [i for d in decisions for c in d.candidates for i in (c.query_index, c.match_index)]
@@ -244,7 +244,7 @@ def _check_frame_count(decisions: Sequence[SequenceDecision], gt: GroundTruth) -
         )
 
 
-def _sweep(decisions: Sequence[SequenceDecision], gt: GroundTruth, tolerance: int) -> _Sweep:
+def _sweep(decisions: Sequence[SequenceDecision], gt: LoopTruth, tolerance: int) -> _Sweep:
     """Sort the reporting decisions by f and count TP/FP cumulatively along that order."""
     f_all = np.array([d.f for d in decisions], dtype=np.float64)
     counts_all = np.array([len(d.candidates) for d in decisions], dtype=np.int64)

@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 
 from ..sinks.atomic import atomic_output
 from .difference_matrix import DifferenceMatrix
-from .groundtruth import GroundTruth
+from .groundtruth import LoopTruth
 from .metrics import Evaluation
 
 Status = Literal["tp", "fp", "reported", "rejected", "skipped"]
@@ -166,21 +166,21 @@ _MATRIX_MARKERS: dict[Status, tuple[str, float]] = {
 _MATRIX_FAINT: dict[Status, str] = {"rejected": "#4fa3e0", "skipped": "#a6cee3"}
 
 
-def _gt_cells(gt: GroundTruth, matrix: DifferenceMatrix) -> npt.NDArray[np.bool_]:
+def _gt_cells(gt: LoopTruth, matrix: DifferenceMatrix) -> npt.NDArray[np.bool_]:
     """GT cells on the matrix's grid: a kept cell is set when any frame it stands for is."""
     n = matrix.frame_indices.size
-    coo = gt.matrix.tocoo()
-    rows = np.minimum(coo.row // matrix.stride, n - 1)
-    cols = np.minimum(coo.col // matrix.stride, n - 1)
     mask = np.zeros((n, n), dtype=bool)
-    mask[rows, cols] = True
+    for frame_rows, frame_cols in gt.cell_batches():
+        rows = np.minimum(frame_rows // matrix.stride, n - 1)
+        cols = np.minimum(frame_cols // matrix.stride, n - 1)
+        mask[rows, cols] = True
     return mask
 
 
 def difference_matrix_figure(
     matrix: DifferenceMatrix,
     detections: Sequence[Detection],
-    gt: GroundTruth | None,
+    gt: LoopTruth | None,
     title: str,
 ) -> Figure:
     """The difference matrix (query frame down, database frame across) with the ground truth
@@ -240,7 +240,7 @@ def plot_difference_matrix(
     path: Path,
     matrix: DifferenceMatrix,
     detections: Sequence[Detection],
-    gt: GroundTruth | None,
+    gt: LoopTruth | None,
     title: str,
 ) -> Path:
     """Write `difference_matrix_figure` as a PNG."""

@@ -9,21 +9,24 @@ the frames' times,
 * with `min_travel_m`, the camera moved at least that far between them (the summed distance
   between consecutive frames), so that a parked camera does not revisit itself.
 
-Pairs come from a KD-tree (scipy cKDTree.query_ball_point), queried in batches whose neighbour
-count is bounded, so memory grows with the frames and the loop cells, never with N x N.
+Cells come from a KD-tree (scipy cKDTree.query_ball_point), queried in batches whose neighbour
+count is bounded. `PoseGroundTruth` keeps none of them (memory grows with the frames only: a
+route driven lap after lap for 8 hours has 240 million cells); `loop_cells` lists them all.
 Frames outside the pose track's time span have no pose and so no loop.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from ..errors import UsageError
+from ..errors import GroundTruthError, UsageError
 from ..sources.poses import PoseTrack
 from .groundtruth import GroundTruth
 
@@ -122,6 +125,74 @@ def _batches(counts: IntArray, limit: int) -> list[tuple[int, int]]:
     return ranges
 
 
+class _Frames:
+    """The frames' times, positions, headings and distance driven, and the loop condition
+    between two of them: one definition for the cells listed and the pairs looked up."""
+
+    def __init__(
+        self,
+        times_ns: npt.ArrayLike,
+        positions: npt.ArrayLike,
+        criteria: LoopCriteria,
+        yaw: npt.ArrayLike | None,
+    ) -> None:
+        """Raises UsageError when `yaw` is missing while the criteria limit the heading."""
+        if criteria.max_heading_deg is not None and yaw is None:
+            raise UsageError("a heading limit needs the poses' orientations")
+        self.criteria = criteria
+        self.times: IntArray = np.asarray(times_ns, dtype=np.int64).ravel()
+        n = self.times.size
+        xyz = np.asarray(positions, dtype=np.float64)
+        self.xyz: FloatArray = xyz.reshape(n, -1) if n else np.zeros((0, 3))
+        self.yaw = None if yaw is None else np.asarray(yaw, dtype=np.float64).ravel()
+        self.valid: IntArray = np.flatnonzero(np.all(np.isfinite(self.xyz), axis=1))
+        # Driven distance, summed over the frames with a pose (a frame without one is skipped).
+        self.travelled: FloatArray = np.zeros(n)
+        if self.valid.size:
+            steps = np.linalg.norm(np.diff(self.xyz[self.valid], axis=0), axis=1)
+            self.travelled[self.valid] = np.concatenate([[0.0], np.cumsum(steps)])
+        self.has_pose: BoolArray = np.zeros(n, dtype=bool)
+        self.has_pose[self.valid] = True
+
+    def loops(self, i: IntArray, j: IntArray) -> BoolArray:
+        """Whether each (later i, earlier j) is a loop (module docstring); frames without a
+        pose make none."""
+        keep: BoolArray = self.has_pose[i] & self.has_pose[j] & (j < i)
+        distance = np.sqrt(np.sum((self.xyz[i] - self.xyz[j]) ** 2, axis=1))
+        keep &= distance <= self.criteria.radius_m
+        keep &= self.times[i] - self.times[j] >= round(self.criteria.min_age_s * 1e9)
+        if self.criteria.max_heading_deg is not None and self.yaw is not None:
+            turn = _wrapped(self.yaw[i] - self.yaw[j])
+            keep &= turn <= math.radians(self.criteria.max_heading_deg)
+        if self.criteria.min_travel_m is not None:
+            keep &= self.travelled[i] - self.travelled[j] >= self.criteria.min_travel_m
+        return keep
+
+    def cell_batches(self, batch_neighbours: int) -> Iterator[tuple[IntArray, IntArray]]:
+        """(rows, cols) of the loop cells, batch by batch of consecutive query frames (rows
+        ascending; sorted by row then column within a batch); a batch's KD-tree neighbours
+        are at most `batch_neighbours` (or a single frame's)."""
+        if self.valid.size < 2:
+            return
+        points = self.xyz[self.valid]
+        tree = cKDTree(points)
+        # A hair wider than the radius: the exact distance test is `loops`'.
+        reach = self.criteria.radius_m * (1 + 1e-9)
+        counts = np.asarray(tree.query_ball_point(points, reach, return_length=True))
+        for start, stop in _batches(counts.astype(np.int64), batch_neighbours):
+            neighbours = tree.query_ball_point(points[start:stop], reach)
+            sizes = np.fromiter((len(n) for n in neighbours), np.int64, stop - start)
+            i = self.valid[np.repeat(np.arange(start, stop), sizes)]
+            flat = np.fromiter(
+                itertools.chain.from_iterable(neighbours), np.int64, int(sizes.sum())
+            )
+            j = self.valid[flat]
+            keep = self.loops(i, j)
+            i, j = i[keep], j[keep]
+            order = np.lexsort((j, i))
+            yield i[order], j[order]
+
+
 def loop_cells(
     times_ns: npt.ArrayLike,
     positions: npt.ArrayLike,
@@ -129,66 +200,125 @@ def loop_cells(
     yaw: npt.ArrayLike | None = None,
     batch_neighbours: int = BATCH_NEIGHBOURS,
 ) -> tuple[IntArray, IntArray]:
-    """(rows, cols) of the loop cells, rows = later frame, sorted by row then column.
+    """(rows, cols) of all the loop cells, rows = later frame, sorted by row then column:
+    memory grows with the cells (`PoseGroundTruth` holds none).
 
     Frames whose position is NaN take no part. Times must not decrease with the index.
 
     Raises:
         UsageError: `yaw` is missing while the criteria limit the heading.
     """
-    times = np.asarray(times_ns, dtype=np.int64)
-    if criteria.max_heading_deg is not None and yaw is None:
-        raise UsageError("a heading limit needs the poses' orientations")
-    if times.size < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    xyz = np.asarray(positions, dtype=np.float64).reshape(times.size, -1)
-    valid = np.flatnonzero(np.all(np.isfinite(xyz), axis=1))
-    if valid.size < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    points = xyz[valid]
-    tree = cKDTree(points)
-    counts = np.asarray(tree.query_ball_point(points, criteria.radius_m, return_length=True))
-    travelled = np.zeros(times.size)
-    travelled[valid] = np.concatenate(
-        [[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
-    )
+    frames = _Frames(times_ns, positions, criteria, yaw)
     rows: list[IntArray] = [np.zeros(0, np.int64)]
     cols: list[IntArray] = [np.zeros(0, np.int64)]
-    for start, stop in _batches(counts.astype(np.int64), batch_neighbours):
-        neighbours = tree.query_ball_point(points[start:stop], criteria.radius_m)
-        sizes = np.fromiter((len(n) for n in neighbours), np.int64, stop - start)
-        i = valid[np.repeat(np.arange(start, stop), sizes)]
-        flat = [k for n in neighbours for k in n]
-        j = valid[np.asarray(flat, dtype=np.int64)]
-        keep = _keep(i, j, times, travelled, criteria, yaw)
-        rows.append(i[keep])
-        cols.append(j[keep])
-    i_all, j_all = np.concatenate(rows), np.concatenate(cols)
-    order = np.lexsort((j_all, i_all))
-    return i_all[order], j_all[order]
+    for i, j in frames.cell_batches(batch_neighbours):
+        rows.append(i)
+        cols.append(j)
+    return np.concatenate(rows), np.concatenate(cols)
 
 
-def _keep(
-    i: IntArray,
-    j: IntArray,
-    times: IntArray,
-    travelled: FloatArray,
-    criteria: LoopCriteria,
-    yaw: npt.ArrayLike | None,
-) -> BoolArray:
-    """Which neighbour pairs (i later than j) pass the age, heading and travel conditions."""
-    keep: BoolArray = (j < i) & (times[i] - times[j] >= round(criteria.min_age_s * 1e9))
-    if criteria.max_heading_deg is not None and yaw is not None:
-        yaws = np.asarray(yaw, dtype=np.float64)
-        keep &= _wrapped(yaws[i] - yaws[j]) <= math.radians(criteria.max_heading_deg)
-    if criteria.min_travel_m is not None:
-        keep &= travelled[i] - travelled[j] >= criteria.min_travel_m
-    return keep
+class PoseGroundTruth:
+    """The ground truth of poses (`LoopTruth`), answered from the frames' poses: memory grows
+    with the frames, never with the loop cells (a route driven lap after lap for hours has
+    hundreds of millions). The loop cells are walked once, in bounded batches, to find the
+    frames that revisit a place and to count them; a pair is looked up by the condition
+    itself; `cell_batches` walks them again (the plots).
+    """
+
+    def __init__(
+        self,
+        poses: FramePoses,
+        criteria: LoopCriteria,
+        source: str = "<poses>",
+        batch_neighbours: int = BATCH_NEIGHBOURS,
+    ) -> None:
+        self.source = source
+        self.variable: str | None = None
+        self.transposed = False
+        self._frames = _Frames(poses.times_ns, poses.positions, criteria, poses.yaw)
+        self._batch = batch_neighbours
+        self._revisits = np.zeros(self.n_frames, dtype=bool)
+        self._nnz = 0
+        for rows, _ in self.cell_batches():
+            self._revisits[rows] = True
+            self._nnz += int(rows.size)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self._frames.times.size)
+
+    @property
+    def nnz(self) -> int:
+        return self._nnz
+
+    @property
+    def n_loop_events(self) -> int:
+        return int(np.count_nonzero(self._revisits))
+
+    def query_rows(self) -> IntArray:
+        rows: IntArray = np.flatnonzero(self._revisits).astype(np.int64)
+        return rows
+
+    def cell_batches(self) -> Iterator[tuple[IntArray, IntArray]]:
+        return self._frames.cell_batches(self._batch)
+
+    def is_true(self, query: int, match: int, tolerance: int = 0) -> bool:
+        return bool(self.are_true([query], [match], tolerance)[0])
+
+    def are_true(
+        self, queries: npt.ArrayLike, matches: npt.ArrayLike, tolerance: int = 0
+    ) -> BoolArray:
+        """`GroundTruth.are_true`, each pair tested by the condition: O(pairs x tolerance).
+
+        Raises:
+            GroundTruthError: an index lies outside the frames, or the arrays differ in shape.
+            UsageError: tolerance is negative.
+        """
+        q = np.asarray(queries, dtype=np.int64).ravel()
+        m = np.asarray(matches, dtype=np.int64).ravel()
+        if q.shape != m.shape:
+            raise GroundTruthError(f"{self.source}: {q.size} queries but {m.size} matches")
+        if tolerance < 0:
+            raise UsageError(f"tolerance must be >= 0, got {tolerance}")
+        n = self.n_frames
+        outside = np.flatnonzero((q < 0) | (q >= n) | (m < 0) | (m >= n))
+        if outside.size:
+            k = int(outside[0])
+            bad = int(q[k]) if not 0 <= q[k] < n else int(m[k])
+            raise GroundTruthError(
+                f"{self.source}: frame index {bad} is outside the ground truth's {n} frames"
+            )
+        result: BoolArray = np.zeros(q.size, dtype=bool)
+        for offset in range(-tolerance, tolerance + 1):
+            near = m + offset
+            inside = (near >= 0) & (near < n)
+            result[inside] |= self._frames.loops(q[inside], near[inside])
+        return result
+
+    def materialized(self) -> GroundTruth:
+        """The same truth as a `GroundTruth` holding every cell (memory grows with them)."""
+        rows, cols = zip(*self.cell_batches(), strict=True) if self._nnz else ((), ())
+        empty = np.zeros(0, np.int64)
+        return GroundTruth(
+            self.n_frames,
+            np.concatenate([empty, *rows]),
+            np.concatenate([empty, *cols]),
+            source=self.source,
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"PoseGroundTruth(source={self.source!r}, n_frames={self.n_frames}, "
+            f"nnz={self.nnz}, loop_events={self.n_loop_events})"
+        )
 
 
 def pose_ground_truth(
     poses: FramePoses, criteria: LoopCriteria, source: str = "<poses>"
-) -> GroundTruth:
-    """The sparse N x N ground truth of the frames whose poses are given."""
-    rows, cols = loop_cells(poses.times_ns, poses.positions, criteria, poses.yaw)
-    return GroundTruth(poses.times_ns.size, rows, cols, source=source)
+) -> PoseGroundTruth:
+    """The ground truth of the frames whose poses are given (`PoseGroundTruth`).
+
+    Raises:
+        UsageError: the poses have no orientation while the criteria limit the heading.
+    """
+    return PoseGroundTruth(poses, criteria, source)

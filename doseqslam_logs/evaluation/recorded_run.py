@@ -21,7 +21,7 @@ from ..annotations.reader import AnnotatedLog
 from ..annotations.records import ACCEPTED, REJECTED, SKIPPED, FrameTimes, SequenceRecord
 from ..detector.events import Candidate, SequenceDecision
 from ..errors import GroundTruthError, UsageError
-from .groundtruth import GroundTruth
+from .groundtruth import LoopTruth
 from .metrics import Evaluation, evaluate, format_side_by_side
 
 
@@ -138,7 +138,7 @@ def verified_decisions(log: AnnotatedLog) -> list[SequenceDecision]:
     return decisions
 
 
-def check_ground_truth_size(log: AnnotatedLog, gt: GroundTruth) -> None:
+def check_ground_truth_size(log: AnnotatedLog, gt: LoopTruth) -> None:
     """The ground truth must cover exactly the frames the run used."""
     frames = frame_count(log)
     if gt.n_frames != frames:
@@ -148,7 +148,7 @@ def check_ground_truth_size(log: AnnotatedLog, gt: GroundTruth) -> None:
         )
 
 
-def evaluate_annotated_log(log: AnnotatedLog, gt: GroundTruth, tolerance: int = 0) -> LogEvaluation:
+def evaluate_annotated_log(log: AnnotatedLog, gt: LoopTruth, tolerance: int = 0) -> LogEvaluation:
     """Score the run recorded in `log` against `gt` at its recorded threshold.
 
     Raises:
