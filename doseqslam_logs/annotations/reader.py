@@ -165,7 +165,7 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
     """
     file = Path(path)
     refuse_stream(file)
-    closures: list[tuple[int, dict[str, Any]]] = []  # (log time, message): two topics to merge
+    closures: list[tuple[int, _Closure]] = []  # (log time, record): two topics to merge
     sequences: list[dict[str, Any]] = []
     try:
         with file.open("rb") as stream:
@@ -176,7 +176,7 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
                     decoders[schema.id] = _decoder(schema, channel.message_encoding)
                 decoded = plain(decoders[schema.id](message.data))
                 if channel.topic in LOOP_CLOSURE_TOPICS:
-                    closures.append((message.log_time, decoded))
+                    closures.append((message.log_time, _closure(path, decoded)))
                 else:
                     sequences.append(decoded)
             entries, frame_times = _ours_of(stream, reader, attachments=True)
@@ -196,13 +196,39 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
         raise SourceError(f"{path}: unusable message on our channels ({exc!r})") from exc
 
 
+_Closure = LoopClosureRecord | dict[str, Any]
+
+
+def _closure(path: str | Path, message: dict[str, Any]) -> _Closure:
+    """The record, made as its message is read so that the messages are not all held at once;
+    the message itself when it needs the frame times, read after the messages (a log annotated
+    between two versions: a refined match without its times).
+
+    Raises SourceError for a message that lacks the fields every version wrote.
+    """
+    if "refined_match_index" in message and "refined_match_log_time" not in message:
+        return message
+    try:
+        return LoopClosureRecord.from_message(message)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SourceError(f"{path}: unusable message on our channels ({exc!r})") from exc
+
+
 def _loop_closures(
-    messages: list[tuple[int, dict[str, Any]]], frame_times: FrameTimes | None
+    messages: list[tuple[int, _Closure]], frame_times: FrameTimes | None
 ) -> tuple[LoopClosureRecord, ...]:
     """The LoopClosure messages of both topics as one list, in the order the writer wrote
     them (`TimedMessage.sort_key`: log time, then query index), whatever order equal log times
     were read in."""
-    records = [(t, LoopClosureRecord.from_message(m, frame_times)) for t, m in messages]
+    records = [
+        (
+            t,
+            m
+            if isinstance(m, LoopClosureRecord)
+            else LoopClosureRecord.from_message(m, frame_times),
+        )
+        for t, m in messages
+    ]
     records.sort(key=lambda item: (item[0], item[1].query.index))
     return tuple(record for _, record in records)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -184,14 +185,22 @@ def float_field(message: Mapping[str, Any], name: str) -> float:
 
 
 def _floats(values: Iterable[Any]) -> tuple[float, ...]:
-    return tuple(optional_float(v) for v in values)
+    floats = tuple(optional_float(v) for v in values)
+    if all(math.isnan(v) for v in floats):  # most records have no pose: one shared tuple
+        return _ALL_NAN.get(len(floats), floats)
+    return floats
+
+
+def _text(value: Any) -> str:
+    """A string field: the few values repeated over every record share one object."""
+    return sys.intern(str(value))
 
 
 def _ints(values: Iterable[Any]) -> tuple[int, ...]:
     return tuple(int(v) for v in values)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)  # slots: an 8-hour log reads 290,000 records
 class FrameRef:
     """One frame as our messages name it: its index, its image message's log time and its
     header stamp (None when the image had no header)."""
@@ -228,11 +237,12 @@ class FrameRef:
 NAN4 = (math.nan,) * 4
 NAN3 = (math.nan,) * 3
 NAN36 = (math.nan,) * 36
+_ALL_NAN = {3: NAN3, 4: NAN4, 36: NAN36}
 # A loop closure's `metric_method` (schemas/*/LoopClosure; "" none, or not recorded).
 DEPTH_PNP, ODOMETRY_PNP, ROTATION_ONLY, NO_METRIC = "depth_pnp", "odometry_pnp", "rotation_only", ""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class LoopClosureRecord:
     """One LoopClosure message (schemas/*/LoopClosure: what each field means): on
     /doseqslam/loop_closures when the run reports it, else on /doseqslam/candidates.
@@ -368,13 +378,13 @@ class LoopClosureRecord:
             gamma_next=float_field(message, "gamma_next"),
             f=float_field(message, "f"),
             threshold=float_field(message, "threshold"),
-            method=str(message["method"]),
-            parameters_hash=str(message["parameters_hash"]),
-            verification=str(get("verification", NOT_RECORDED)),
+            method=_text(message["method"]),
+            parameters_hash=_text(message["parameters_hash"]),
+            verification=_text(get("verification", NOT_RECORDED)),
             inliers=int(get("inliers", -1)),
             tentative_matches=int(get("tentative_matches", -1)),
-            verification_model=str(get("verification_model", "")),
-            rejection_reason=str(get("rejection_reason", "")),
+            verification_model=_text(get("verification_model", "")),
+            rejection_reason=_text(get("rejection_reason", "")),
             refined_match=_refined_match(message, frame_times),
             has_relative_pose=bool(get("has_relative_pose", False)),
             rotation_xyzw=_floats(get("rotation_xyzw", NAN4)),
@@ -382,13 +392,13 @@ class LoopClosureRecord:
             translation_direction=_floats(get("translation_direction", NAN3)),
             proposal=int(get("proposal", 0)),
             proposal_match_index=int(get("proposal_match_index", -1)),
-            metric_method=str(get("metric_method", NO_METRIC)),
+            metric_method=_text(get("metric_method", NO_METRIC)),
             metric_translation=_floats(get("metric_translation", NAN3)),
             metric_rotation_xyzw=_floats(get("metric_rotation_xyzw", NAN4)),
             metric_covariance=_floats(get("metric_covariance", NAN36)),
             metric_inliers=int(get("metric_inliers", -1)),
             metric_residual_px=optional_float(get("metric_residual_px", math.nan)),
-            metric_reason=str(get("metric_reason", "")),
+            metric_reason=_text(get("metric_reason", "")),
         )
 
 
