@@ -131,3 +131,33 @@ def test_annotate_json_has_every_figure_of_the_summary_line(tmp_path: Path, caps
     assert metric["pairs"] == 83 and sum(metric["methods"].values()) == 83
     assert metric["odometry_topic"] == "/odom" and metric["methods"]["odometry_pnp"] > 0
     assert doc["log_time_fallbacks"] == 0 and doc["frames_per_second"] > 0
+
+
+def test_evaluate_of_an_annotated_log_says_each_stage_off_a_terminal(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """Scoring an 8-hour log takes minutes (reading 290,000 records, its pose topic): past
+    QUIET_S, a line as each part begins, the report on stdout unchanged."""
+    from doseqslam_logs.detector import Parameters
+    from doseqslam_logs.evaluation.log_run import LogEvaluationOptions, evaluate_log
+    from doseqslam_logs.pipeline.annotate import AnnotateOptions
+
+    out = tmp_path / "drive_loops.annotated.mcap"
+    annotate_log(SAMPLE, out, Parameters(), AnnotateOptions(verification=None))
+    seen: list[str] = []
+    options = LogEvaluationOptions(gt_topic="/ground_truth/pose", radius=2.0)
+    evaluate_log(out, options, stage=seen.append)
+    assert seen == ["read", "truth", "score"]
+    args = ["evaluate", str(out), "--gt-topic", "/ground_truth/pose", "--radius", "2"]
+    monkeypatch.setattr(progress_module, "QUIET_S", 0.0)
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [
+        "evaluate: reading the annotations",
+        "evaluate: reading the ground truth",
+        "evaluate: scoring the run",
+    ]
+    assert "ground truth     : /ground_truth/pose (within 2 m" in captured.out
+    monkeypatch.setattr(progress_module, "QUIET_S", 3600.0)
+    assert main(args) == 0
+    assert capsys.readouterr().err == ""

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import UsageError
+from .progress import Progress
 
 # The log's evaluation (ground truth: OpenCV, SciPy) is imported when it runs, not for --help.
 if TYPE_CHECKING:
@@ -137,7 +138,11 @@ def run_log(args: argparse.Namespace) -> int:
     from ..evaluation.log_run import evaluate_log
 
     _check_log_args(args)
-    report = evaluate_log(args.log, _options(args))
+    progress = Progress(None, "evaluate")  # a line per stage, off a terminal past QUIET_S
+    try:
+        report = evaluate_log(args.log, _options(args), stage=progress.started)
+    finally:
+        progress.close()
     if args.json:
         print(json.dumps(report.to_json_dict(), indent=2))
     else:

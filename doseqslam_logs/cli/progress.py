@@ -21,6 +21,11 @@ STAGE_LINES = {
     "verify": "verifying the candidate pairs geometrically",
     "metric": "metric poses of the accepted pairs",
     "write": "writing the output",
+    # evaluate OUT.mcap
+    "read": "reading the annotations",
+    "truth": "reading the ground truth",
+    "score": "scoring the run",
+    "draw": "drawing the pictures",
 }
 QUIET_S = 10.0  # off a terminal, a run that ends before this prints nothing
 LINE_EVERY_S = 60.0  # off a terminal, a progress line this often

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -81,24 +82,33 @@ class LogReport:
 
 
 def evaluate_log(
-    log: AnnotatedLog | str | Path, options: LogEvaluationOptions | None = None
+    log: AnnotatedLog | str | Path,
+    options: LogEvaluationOptions | None = None,
+    stage: Callable[[str], None] | None = None,
 ) -> LogReport:
     """Score the run recorded in an annotated log (or sidecar; a path, or already read)
     against ground truth, and draw it when `options.plot` names a folder, as `evaluate
-    OUT.mcap` does.
+    OUT.mcap` does. `stage(name)` as each part begins: "read" (the annotations), "truth"
+    (the ground truth: its file, or the pose topic read and its loops found), "score", "draw".
 
     Raises UsageError (no ground truth, a sidecar without source, matplotlib missing for
     plots, ...), SourceError (not an annotated log), GroundTruthError.
     """
+    began = stage or (lambda name: None)
     options = options or LogEvaluationOptions()
     check_options(options)
     plots = _plots_module() if options.plot is not None else None  # fail before the work
+    began("read")
     annotated = log if isinstance(log, AnnotatedLog) else read_annotations(log)
     inputs = _Inputs(options, annotated)
+    began("truth")
     gt, gt_info = _ground_truth(inputs)
+    began("score")
     result = evaluate_annotated_log(annotated, gt, options.tolerance)
     if gt_info["kind"] == "poses":
         result = _renamed(result, gt.source)
+    if plots is not None:
+        began("draw")
     written = [] if plots is None else _draw(plots, inputs, gt, result)
     return LogReport(annotated, gt_info, result, written, gt)
 
