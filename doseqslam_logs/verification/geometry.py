@@ -676,6 +676,8 @@ def _essential_verdict(
     looked_again = verdict.inliers >= params.second_guess_factor * params.min_inliers
     if looked_again and turned_past(posed, params.max_rotation_deg):
         posed = _homography_rotation(posed, p_query, p_match, k, mask, threshold, params)
+    elif not turned_past(posed, params.max_rotation_deg):
+        posed = _planar_rotation(posed, p_query, p_match, k, mask, threshold, params)
     if turned_past(posed, params.max_rotation_deg):
         reason = turned_too_far(params.max_rotation_deg)
         return dataclasses.replace(posed, accepted=False, reason=reason)
@@ -697,6 +699,61 @@ def _homography_rotation(
     matches constrain the rotation and hardly the translation, and the rotation nearest
     K^-1 H K (its orthogonal polar factor) is that rotation; the translation's direction is
     then the one that best fits it (`_direction_given`). Unchanged otherwise."""
+    fitted = _inlier_homography(p_query, p_match, mask, threshold, params, HOMOGRAPHY_SHARE)
+    if fitted is None:
+        return verdict
+    homography, q_inliers, m_inliers = fitted
+    u, _, vt = np.linalg.svd(np.linalg.inv(k) @ homography @ k)
+    nearest = u @ vt
+    if np.linalg.det(nearest) < 0:  # H is defined up to scale, its sign included
+        nearest = -nearest
+    return _posed_by(verdict, Rotation.from_matrix(nearest), q_inliers, m_inliers, k)
+
+
+def _planar_rotation(
+    verdict: Verdict,
+    p_query: Points,
+    p_match: Points,
+    k: npt.NDArray[np.float64],
+    mask: npt.NDArray[Any],
+    threshold: float,
+    params: VerificationParameters,
+) -> Verdict:
+    """`verdict` with the wider rotation of a plane's two readings, where a homography explains
+    `params.planar_share` of the essential fit's inliers (0: off) and that reading turns past
+    max_rotation_deg. Points on one plane (a facade filling the view) fit two poses equally,
+    the plane's two decompositions (Faugeras and Lustman, 1988); the essential fit picks one or
+    lands between them, and a sideways step is then read as a smaller turn: 6 degrees for a
+    pair turned 21, whose plane reads 14 or 23. Under the limit only if both readings are."""
+    if params.planar_share <= 0:
+        return verdict
+    fitted = _inlier_homography(p_query, p_match, mask, threshold, params, params.planar_share)
+    if fitted is None:
+        return verdict
+    homography, q_inliers, m_inliers = fitted
+    _, rotations, _, _ = cv2.decomposeHomographyMat(homography, k)
+    # OpenCV's analytic decomposition gives NaN where two of H's singular values coincide.
+    finite = [np.asarray(r, np.float64) for r in rotations if np.all(np.isfinite(r))]
+    readings = [Rotation.from_matrix(r) for r in finite]
+    if not readings:
+        return verdict
+    widest = max(readings, key=lambda r: float(np.linalg.norm(r.as_rotvec())))
+    if math.degrees(float(np.linalg.norm(widest.as_rotvec()))) <= params.max_rotation_deg:
+        return verdict
+    return _posed_by(verdict, widest, q_inliers, m_inliers, k)
+
+
+def _inlier_homography(
+    p_query: Points,
+    p_match: Points,
+    mask: npt.NDArray[Any],
+    threshold: float,
+    params: VerificationParameters,
+    share: float,
+) -> tuple[npt.NDArray[np.float64], Points, Points] | None:
+    """(H, the fit's inlier points of each frame) where a homography fitted to the essential
+    fit's inliers explains `share` of them (at HOMOGRAPHY_THRESHOLD_FACTOR x its threshold);
+    None otherwise."""
     inliers = mask.ravel().astype(bool)
     q_inliers, m_inliers = p_query[inliers], p_match[inliers]
     cv2.setRNGSeed(_FIT_SEED)
@@ -710,16 +767,23 @@ def _homography_rotation(
             confidence=params.confidence,
         )
     except cv2.error:
-        return verdict
-    if homography is None or kept is None or _count(kept) < HOMOGRAPHY_SHARE * verdict.inliers:
-        return verdict
-    u, _, vt = np.linalg.svd(np.linalg.inv(k) @ homography @ k)
-    nearest = u @ vt
-    if np.linalg.det(nearest) < 0:  # H is defined up to scale, its sign included
-        nearest = -nearest
-    rotation = Rotation.from_matrix(nearest)
+        return None
+    if homography is None or kept is None or _count(kept) < share * _count(mask):
+        return None
+    return np.asarray(homography, np.float64), q_inliers, m_inliers
+
+
+def _posed_by(
+    verdict: Verdict,
+    rotation: Rotation,
+    q_inliers: Points,
+    m_inliers: Points,
+    k: npt.NDArray[np.float64],
+) -> Verdict:
+    """`verdict` with `rotation` (as the scalar-non-negative quaternion `_with_pose` gives)
+    and the translation direction that best fits it (`_direction_given`)."""
     x, y, z, w = (float(v) for v in rotation.as_quat())
-    if w < 0:  # the scalar-non-negative quaternion, as `_with_pose` gives
+    if w < 0:
         x, y, z, w = -x, -y, -z, -w
     angle = math.degrees(float(np.linalg.norm(rotation.as_rotvec())))
     direction = _direction_given(rotation.as_matrix(), q_inliers, m_inliers, k)

@@ -83,6 +83,13 @@ class VerificationParameters:
     # only where the query's position lies between two verified frames of the match's
     # trajectory (geometry.bracketed_match); the refined match is then the nearer of those two.
     max_rotation_deg: float = 10.0
+    # With planar_share > 0, a pair whose essential fit turns under the limit but whose
+    # inliers a homography explains at that share is read as the wider of the plane's two
+    # poses (geometry._planar_rotation): points on one plane fit two poses, and the fit may
+    # read a turn past the limit as a sideways step and a small turn. 0.95 took out the
+    # 8-hour generated log's false pairs turned 20.5-21 degrees (read 6 and 14) for 3 % of the
+    # matrix's true pairs (docs/research/2026-12-08-planar-rotation.md). 0: off.
+    planar_share: float = 0.0
     bracket: bool = True
     # The motion rule (verification.motion): a pair is reported only if the camera left the
     # match's place and came back; else it is rejected "stationary". With a pose topic, left
@@ -152,6 +159,10 @@ class VerificationParameters:
                 raise ParameterError(
                     f"{name} must be >= {MIN_ACCEPTABLE_INLIERS}, got {getattr(self, name)}"
                 )
+        if not 0 <= self.planar_share <= 1:
+            raise ParameterError(
+                f"planar_share must be in [0, 1] (0: off), got {self.planar_share}"
+            )
         if not self.second_guess_factor >= 1:
             raise ParameterError(
                 f"second_guess_factor must be >= 1, got {self.second_guess_factor}"
