@@ -61,8 +61,10 @@ REPO = Path(__file__).resolve().parents[1]
 # bracketed placed again from where it lands (drive_varrate 53, drive_parked 41, on purpose)
 # in 2c99a1e; then a pair seen from nearly one spot turned by its homography, with the
 # translation's direction fitted to that rotation (drive_loops 83, drive_varrate 58,
-# drive_parked 41, on purpose) in 2b14a1f.
-BYTES_REFERENCE = "2b14a1f"
+# drive_parked 41, on purpose) in 2b14a1f; then planar_share (a new verification parameter,
+# 0: off; the samples' decisions the same, their metadata lists it and their hash moves) in
+# 252e417.
+BYTES_REFERENCE = "252e417"
 REFERENCE = BYTES_REFERENCE
 
 
