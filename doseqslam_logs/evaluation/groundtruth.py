@@ -221,13 +221,7 @@ class GroundTruth:
             GroundTruthError: an index lies outside the matrix, or the arrays differ in shape.
             UsageError: tolerance is negative.
         """
-        q = np.asarray(queries, dtype=np.int64).ravel()
-        m = np.asarray(matches, dtype=np.int64).ravel()
-        if q.shape != m.shape:
-            raise GroundTruthError(f"{self.source}: {q.size} queries but {m.size} matches")
-        if tolerance < 0:
-            raise UsageError(f"tolerance must be >= 0, got {tolerance}")
-        self._check_indices(q, m)
+        q, m = checked_pairs(self.source, self._n, queries, matches, tolerance)
         n = self._n
         # Clip the window to the row so that it never spills into the neighbouring rows' keys.
         low = q * n + np.maximum(m - tolerance, 0)
@@ -237,22 +231,37 @@ class GroundTruth:
         result: BoolArray = after > first
         return result
 
-    def _check_indices(self, q: IntArray, m: IntArray) -> None:
-        if q.size == 0:
-            return
-        lowest = min(int(q.min()), int(m.min()))
-        highest = max(int(q.max()), int(m.max()))
-        if lowest < 0 or highest >= self._n:
-            bad = lowest if lowest < 0 else highest
-            raise GroundTruthError(
-                f"{self.source}: frame index {bad} is outside the ground truth's {self._n} frames"
-            )
-
     def __repr__(self) -> str:
         return (
             f"GroundTruth(source={self.source!r}, n_frames={self._n}, nnz={self.nnz}, "
             f"loop_events={self.n_loop_events}, transposed={self.transposed})"
         )
+
+
+def checked_pairs(
+    source: str, n: int, queries: npt.ArrayLike, matches: npt.ArrayLike, tolerance: int
+) -> tuple[IntArray, IntArray]:
+    """(queries, matches) as int64 arrays, checked against a ground truth of n frames.
+
+    Raises:
+        GroundTruthError: an index lies outside the n frames, or the arrays differ in shape.
+        UsageError: tolerance is negative.
+    """
+    q = np.asarray(queries, dtype=np.int64).ravel()
+    m = np.asarray(matches, dtype=np.int64).ravel()
+    if q.shape != m.shape:
+        raise GroundTruthError(f"{source}: {q.size} queries but {m.size} matches")
+    if tolerance < 0:
+        raise UsageError(f"tolerance must be >= 0, got {tolerance}")
+    if q.size:
+        lowest = min(int(q.min()), int(m.min()))
+        highest = max(int(q.max()), int(m.max()))
+        if lowest < 0 or highest >= n:
+            bad = lowest if lowest < 0 else highest
+            raise GroundTruthError(
+                f"{source}: frame index {bad} is outside the ground truth's {n} frames"
+            )
+    return q, m
 
 
 # -- loading ------------------------------------------------------------------------------

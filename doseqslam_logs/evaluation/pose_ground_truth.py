@@ -26,9 +26,9 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from ..errors import GroundTruthError, UsageError
+from ..errors import UsageError
 from ..sources.poses import PoseTrack
-from .groundtruth import GroundTruth
+from .groundtruth import GroundTruth, checked_pairs
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -274,20 +274,8 @@ class PoseGroundTruth:
             GroundTruthError: an index lies outside the frames, or the arrays differ in shape.
             UsageError: tolerance is negative.
         """
-        q = np.asarray(queries, dtype=np.int64).ravel()
-        m = np.asarray(matches, dtype=np.int64).ravel()
-        if q.shape != m.shape:
-            raise GroundTruthError(f"{self.source}: {q.size} queries but {m.size} matches")
-        if tolerance < 0:
-            raise UsageError(f"tolerance must be >= 0, got {tolerance}")
         n = self.n_frames
-        outside = np.flatnonzero((q < 0) | (q >= n) | (m < 0) | (m >= n))
-        if outside.size:
-            k = int(outside[0])
-            bad = int(q[k]) if not 0 <= q[k] < n else int(m[k])
-            raise GroundTruthError(
-                f"{self.source}: frame index {bad} is outside the ground truth's {n} frames"
-            )
+        q, m = checked_pairs(self.source, n, queries, matches, tolerance)
         result: BoolArray = np.zeros(q.size, dtype=bool)
         for offset in range(-tolerance, tolerance + 1):
             near = m + offset
