@@ -370,6 +370,7 @@ FLOAT_VERIFICATION = [
     "second_guess_factor",
     "query_interval_s",
     "max_rotation_deg",
+    "planar_share",
     "leave_distance_m",
     "heading_drift_deg",
     "heading_drift_deg_per_m",

@@ -86,9 +86,8 @@ class VerificationParameters:
     # With planar_share > 0, a pair whose essential fit turns under the limit but whose
     # inliers a homography explains at that share is read as the wider of the plane's two
     # poses (geometry._planar_rotation): points on one plane fit two poses, and the fit may
-    # read a turn past the limit as a sideways step and a small turn. 0.95 took out the
-    # 8-hour generated log's false pairs turned 20.5-21 degrees (read 6 and 14) for 3 % of the
-    # matrix's true pairs (docs/research/2026-12-08-planar-rotation.md). 0: off.
+    # read a turn past the limit as a sideways step and a small turn. It also rejects true
+    # pairs whose other reading is wide (a match a metre off a plane): 0, off, by default.
     planar_share: float = 0.0
     bracket: bool = True
     # The motion rule (verification.motion): a pair is reported only if the camera left the
