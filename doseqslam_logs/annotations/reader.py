@@ -193,10 +193,15 @@ def read_annotations(path: str | Path) -> AnnotatedLog:
             frame_times,
         )
     except (KeyError, TypeError, ValueError) as exc:
-        raise SourceError(f"{path}: unusable message on our channels ({exc!r})") from exc
+        raise _unusable(path, exc) from exc
 
 
 _Closure = LoopClosureRecord | dict[str, Any]
+
+
+def _unusable(path: str | Path, exc: BaseException) -> SourceError:
+    """A message of ours that lacks the fields every version wrote, or holds the wrong kind."""
+    return SourceError(f"{path}: unusable message on our channels ({exc!r})")
 
 
 def _closure(path: str | Path, message: dict[str, Any]) -> _Closure:
@@ -211,7 +216,7 @@ def _closure(path: str | Path, message: dict[str, Any]) -> _Closure:
     try:
         return LoopClosureRecord.from_message(message)
     except (KeyError, TypeError, ValueError) as exc:
-        raise SourceError(f"{path}: unusable message on our channels ({exc!r})") from exc
+        raise _unusable(path, exc) from exc
 
 
 def _loop_closures(

@@ -107,9 +107,10 @@ def evaluate_log(
     result = evaluate_annotated_log(annotated, gt, options.tolerance)
     if gt_info["kind"] == "poses":
         result = _renamed(result, gt.source)
+    written: list[Path] = []
     if plots is not None:
         began("draw")
-    written = [] if plots is None else _draw(plots, inputs, gt, result)
+        written = _draw(plots, inputs, gt, result)
     return LogReport(annotated, gt_info, result, written, gt)
 
 

@@ -233,7 +233,6 @@ class PoseGroundTruth:
         batch_neighbours: int = BATCH_NEIGHBOURS,
     ) -> None:
         self.source = source
-        self.variable: str | None = None
         self.transposed = False
         self._frames = _Frames(poses.times_ns, poses.positions, criteria, poses.yaw)
         self._batch = batch_neighbours
